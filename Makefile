@@ -1,0 +1,27 @@
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: venv demo test bench clean
+
+venv: $(STAMP)
+
+$(STAMP): requirements.txt setup.py
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -r requirements.txt
+	$(PY) -m pip install --quiet --no-deps -e .
+	touch $(STAMP)
+
+demo: venv
+	$(PY) -m gcp_stereo_ros.demo --out out
+
+test: venv
+	$(PY) -m pytest -q test
+
+bench: venv
+	$(PY) -m gcp_stereo_ros.bench
+
+clean:
+	rm -rf $(VENV) out build *.egg-info

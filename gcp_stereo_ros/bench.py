@@ -1,0 +1,71 @@
+"""gcp-stereo-bench: stage timings against OpenCV StereoSGBM (MODE_HH) in the same process.
+
+A real pair is resized to KITTI size (1242x375) and matched with D = 128 disparities. Each
+stage runs once to warm up (Numba compilation, torch kernels), then `--repeat` times; the
+median is reported, with its ratio to OpenCV's time on the same images. Machines are noisy:
+read the ratios, not the absolute seconds.
+"""
+import argparse
+import json
+import resource
+import statistics
+import time
+from pathlib import Path
+
+import cv2
+
+from .cost import cost_volume
+from .datasets import list_frames, load_frame
+from .evaluate import opencv_sgbm
+from .images import gray_pair
+from .sgm import aggregate
+
+KITTI_SIZE = (1242, 375)
+
+
+def median_seconds(fn, repeat):
+    fn()
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--dataset', default='motorcycle', help="dataset of the pair (default: 'motorcycle')")
+    ap.add_argument('--frame', help='frame name in that dataset (default: the first)')
+    ap.add_argument('--max-disp', type=int, default=128)
+    ap.add_argument('--repeat', type=int, default=5)
+    ap.add_argument('--json', type=Path, help='write {"stages", "ratios", "peak_rss_mb"} here')
+    args = ap.parse_args(argv)
+
+    frame = load_frame(args.dataset, args.frame or list_frames(args.dataset)[0])
+    left, right = (cv2.resize(g, KITTI_SIZE, interpolation=cv2.INTER_AREA) for g in gray_pair(frame.left, frame.right))
+    nd = args.max_disp
+    print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, repeat {args.repeat}')
+    census = cost_volume(left, right, nd, 'census')
+    stages = {
+        'opencv_sgbm_hh': lambda: opencv_sgbm(left, right, nd),
+        'census': lambda: cost_volume(left, right, nd, 'census'),
+        'sad': lambda: cost_volume(left, right, nd, 'sad'),
+        'sgm8': lambda: aggregate(census, 4, 128, 8),
+        'sgm16': lambda: aggregate(census, 4, 128, 16),
+    }
+    seconds = {name: median_seconds(fn, args.repeat) for name, fn in stages.items()}
+    peer = seconds['opencv_sgbm_hh']
+    ratios = {name: s / peer for name, s in seconds.items() if name != 'opencv_sgbm_hh'}
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print(f'{"stage":<16}{"seconds":>9}{"ours/opencv":>13}')
+    for name, s in seconds.items():
+        print(f'{name:<16}{s:9.3f}{ratios.get(name, 1.0):13.2f}')
+    print(f'peak RSS {peak:.0f} MB')
+    if args.json:
+        args.json.write_text(json.dumps({'stages': seconds, 'ratios': ratios, 'peak_rss_mb': peak}, indent=1))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,191 @@
+"""Stereo pairs with ground truth from the standard benchmark layouts (KITTI, Middlebury).
+
+`source` is the word `motorcycle` (scikit-image's Middlebury 2014 pair) or a folder that
+is searched recursively for every supported layout. Frame names are scene paths relative
+to `source` (its basename when `source` is the scene itself), plus `/<image id>` for KITTI.
+"""
+import functools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+LAYOUTS = ('KITTI 2012 (training/image_0, image_1, disp_noc)',
+           'KITTI 2015 (training/image_2, image_3, disp_noc_0)',
+           'Middlebury v2 (imL.png, imR.png, groundtruth.png, nonocc.png, info.txt)',
+           'Middlebury 2003 (im2.png, im6.png, disp2.png)',
+           'Middlebury 2006 (view1.png, view5.png, disp1.png)',
+           'OpenCV-doc Aloe (<name>L.*, <name>R.*, <name>GT.png)')
+
+# (left dir, right dir, GT dir, left camera, right camera) of the KITTI training folder.
+_KITTI = (('image_0', 'image_1', 'disp_noc', 0, 1), ('image_2', 'image_3', 'disp_noc_0', 2, 3))
+_KITTI_MAX_DISP = 128
+
+
+@dataclass
+class Frame:
+    """One rectified pair; disparities are in pixels of these images, NaN where unknown."""
+    name: str
+    left: np.ndarray
+    right: np.ndarray
+    gt: np.ndarray | None
+    valid: np.ndarray | None
+    max_disp: int
+    gt_right: np.ndarray | None = None
+    focal_px: float | None = None
+    baseline_m: float | None = None
+
+
+def list_frames(source):
+    """Names of every frame under `source`, sorted."""
+    return list(_scan(source))
+
+
+def load_frame(source, name):
+    """The frame called `name` (as returned by `list_frames(source)`)."""
+    frames = _scan(source)
+    if name not in frames:
+        raise ValueError(f'no frame {name!r} in {source}; available: {", ".join(frames)}')
+    return frames[name]()
+
+
+def load_frames(source, names=None):
+    """Yield the frames `names` (default: all of them) one at a time."""
+    frames = _scan(source)
+    for name in list(frames) if names is None else names:
+        if name not in frames:
+            raise ValueError(f'no frame {name!r} in {source}; available: {", ".join(frames)}')
+        yield frames[name]()
+
+
+def _scan(source):
+    """Ordered {name: loader} of every frame under `source`."""
+    if str(source) == 'motorcycle':
+        return {'motorcycle': _motorcycle}
+    root = Path(source)
+    if not root.is_dir():
+        raise ValueError(f'{source}: not "motorcycle" nor an existing folder')
+    frames = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames.sort()
+        folder = Path(dirpath)
+        rel = root.name if folder == root else folder.relative_to(root).as_posix()
+        found = _scene(folder, rel, set(filenames))
+        if found:
+            frames.update(found)
+            dirnames.clear()
+    if not frames:
+        raise ValueError(f'{source}: no stereo pairs found; looked for ' + '; '.join(LAYOUTS))
+    return frames
+
+
+def _scene(folder, rel, files):
+    """{name: loader} for `folder` if it is a scene of a supported layout, else {}."""
+    for training in (folder / 'training', folder):
+        for kind in _KITTI:
+            if all((training / d).is_dir() for d in kind[:3]):
+                stems = sorted(p.stem for p in (training / kind[0]).glob('*_10.png'))
+                return {f'{rel}/{s}': functools.partial(_kitti, training, f'{rel}/{s}', s, kind) for s in stems}
+    if {'imL.png', 'imR.png', 'groundtruth.png', 'nonocc.png', 'info.txt'} <= files:
+        return {rel: functools.partial(_middlebury_v2, folder, rel)}
+    if {'im2.png', 'im6.png', 'disp2.png'} <= files:
+        return {rel: functools.partial(_middlebury_pair, folder, rel, 'im2', 'im6', 'disp2', 'disp6', None)}
+    if {'view1.png', 'view5.png', 'disp1.png'} <= files:
+        parts = [p.lower() for p in folder.resolve().parts]
+        scale = 2 if 'halfsize' in parts else 3 if 'thirdsize' in parts else 1
+        return {rel: functools.partial(_middlebury_pair, folder, rel, 'view1', 'view5', 'disp1', 'disp5', scale)}
+    gts = sorted(f for f in files if f.endswith('GT.png'))
+    if gts:
+        if len(gts) > 1:
+            raise ValueError(f'{folder}: several <name>GT.png files {gts}; expected one pair per folder')
+        prefix = gts[0][:-len('GT.png')]
+        lefts = sorted(f for f in files if f.startswith(prefix + 'L.'))
+        rights = sorted(f for f in files if f.startswith(prefix + 'R.'))
+        if lefts and rights:
+            return {rel: functools.partial(_aloe, folder, rel, lefts[0], rights[0], gts[0])}
+    return {}
+
+
+def _image(path):
+    """uint8 gray (H, W) if stored gray, else RGB (H, W, 3)."""
+    im = Image.open(path)
+    return np.array(im if im.mode == 'L' else im.convert('RGB'))
+
+
+def _gray8(path):
+    """8-bit values; palette PNGs are mapped through their palette."""
+    return np.array(Image.open(path).convert('L'))
+
+
+def _disparity(raw, scale):
+    """float32 disparity from stored values; 0 = unknown becomes NaN."""
+    d = raw.astype(np.float32) / scale
+    d[raw == 0] = np.nan
+    return d
+
+
+def _above(gt):
+    """Smallest multiple of 16 strictly above the largest known disparity."""
+    return 16 * (int(np.nanmax(gt)) // 16 + 1)
+
+
+def _frame(name, left, right, gt, valid, max_disp, gt_right=None, **extra):
+    for what, a in (('right image', right), ('ground truth', gt), ('right ground truth', gt_right)):
+        if a is not None and a.shape[:2] != left.shape[:2]:
+            raise ValueError(f'{name}: {what} is {a.shape[:2]} but left image is {left.shape[:2]}')
+    return Frame(name, left, right, gt, valid, max_disp, gt_right, **extra)
+
+
+def _motorcycle():
+    from skimage.data import stereo_motorcycle
+    left, right, gt = stereo_motorcycle()
+    gt = np.where(np.isfinite(gt), gt, np.nan).astype(np.float32)
+    return _frame('motorcycle', left, right, gt, np.isfinite(gt), 64)
+
+
+def _kitti(training, name, stem, kind):
+    left, right, gt_dir, *cams = kind
+    gt = _disparity(np.array(Image.open(training / gt_dir / f'{stem}.png')), 256.0)
+    focal, baseline = _kitti_calib(training, stem.split('_')[0], cams)
+    return _frame(name, _image(training / left / f'{stem}.png'), _image(training / right / f'{stem}.png'),
+                  gt, np.isfinite(gt), _KITTI_MAX_DISP, focal_px=focal, baseline_m=baseline)
+
+
+def _kitti_calib(training, frame_id, cams):
+    """(focal px, baseline m) from the projection matrices of the two cameras, if shipped."""
+    for path, key in ((training / 'calib' / f'{frame_id}.txt', 'P{}'),
+                      (training / 'calib_cam_to_cam' / f'{frame_id}.txt', 'P_rect_0{}')):
+        if path.is_file():
+            rows = dict(line.split(':', 1) for line in path.read_text().splitlines() if ':' in line)
+            pl, pr = (np.array(rows[key.format(c)].split(), dtype=float).reshape(3, 4) for c in cams)
+            return float(pr[0, 0]), float((pl[0, 3] - pr[0, 3]) / pr[0, 0])
+    return None, None
+
+
+def _middlebury_v2(folder, name):
+    lines = (folder / 'info.txt').read_text().split()
+    if len(lines) < 2:
+        raise ValueError(f'{folder / "info.txt"}: expected the scale and the number of disparities')
+    scale, ndisp = float(lines[0]), int(lines[1])
+    gt = _disparity(_gray8(folder / 'groundtruth.png'), scale)
+    valid = np.isfinite(gt) & (_gray8(folder / 'nonocc.png') == 255)
+    return _frame(name, _image(folder / 'imL.png'), _image(folder / 'imR.png'), gt, valid,
+                  -(-ndisp // 16) * 16)
+
+
+def _middlebury_pair(folder, name, left, right, gt_left, gt_right, scale):
+    """2003 (scale from the width: 1800 px = full size) and 2006 (scale given) scenes."""
+    left = _image(folder / f'{left}.png')
+    scale = scale or round(1800 / left.shape[1])
+    gt = _disparity(_gray8(folder / f'{gt_left}.png'), scale)
+    gt_r = folder / f'{gt_right}.png'
+    gt_r = _disparity(_gray8(gt_r), scale) if gt_r.is_file() else None
+    return _frame(name, left, _image(folder / f'{right}.png'), gt, np.isfinite(gt), _above(gt),
+                  gt_right=gt_r)
+
+
+def _aloe(folder, name, left, right, gt):
+    gt = _disparity(_gray8(folder / gt), 1.0)
+    return _frame(name, _image(folder / left), _image(folder / right), gt, np.isfinite(gt), _above(gt))

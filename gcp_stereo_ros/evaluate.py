@@ -1,0 +1,162 @@
+"""gcp-stereo-eval: error rates of the stereo methods on datasets with ground truth.
+
+Prints a table like the paper's Table 1 (% of ground-truth pixels with error > 3 px, per
+frame and mean) and optionally writes JSON rows and colour-mapped disparity PNGs.
+"""
+import argparse
+import fnmatch
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from .datasets import list_frames, load_frame
+from .images import gray_pair
+from .metrics import error_rates
+from .pipeline import StereoConfig, StereoPipeline
+from .viz import colorize, save_png
+
+METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
+
+
+def opencv_sgbm(left, right, max_disp, block=5):
+    """The peer: OpenCV StereoSGBM in MODE_HH (full 8-path SGM), disparity float32, NaN invalid.
+
+    Its own invalidating filters (uniqueness, left-right, speckle) are off, as ours are by
+    default; it still leaves no estimate where x < max_disp can not be searched.
+    """
+    lg, rg = gray_pair(left, right)
+    lo, hi = min(lg.min(), rg.min()), max(lg.max(), rg.max())
+    if lo < 0 or hi > 255 or hi <= 1:  # uint16 or float input: one joint scale to 0..255
+        lg, rg = ((g - lo) * (255.0 / max(hi - lo, 1e-6)) for g in (lg, rg))
+    lg, rg = lg.astype(np.uint8), rg.astype(np.uint8)
+    ndisp = -(-int(max_disp) // 16) * 16
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=ndisp, blockSize=block,
+                                 P1=8 * block * block, P2=32 * block * block, disp12MaxDiff=-1,
+                                 uniquenessRatio=0, speckleWindowSize=0, mode=cv2.STEREO_SGBM_MODE_HH)
+    disp = sgbm.compute(lg, rg).astype(np.float32) / 16.0
+    disp[disp < 0] = np.nan
+    return disp
+
+
+def method_config(method, max_disp, paths=16, overrides=None):
+    """StereoConfig of a pipeline method ('sad', 'census+gcp', ...): the cost's defaults,
+    then `overrides` (a dict of StereoConfig fields)."""
+    cost, _, gcp = method.partition('+')
+    return StereoConfig.for_cost(cost, use_gcp=bool(gcp), max_disp=max_disp, paths=paths,
+                                 **(overrides or {}))
+
+
+class Runner:
+    """Runs any method of METHODS on frames, sharing one loaded CNN."""
+
+    def __init__(self, paths=16, overrides=None):
+        self.paths = paths
+        self.overrides = dict(overrides or {})
+        self._pipeline = StereoPipeline(method_config('census', 16, paths, self.overrides))
+
+    def pipeline(self, method, max_disp):
+        cost = 'census' if method == 'cnn' else method
+        self._pipeline = self._pipeline.with_config(method_config(cost, max_disp, self.paths, self.overrides))
+        return self._pipeline
+
+    def run(self, method, left, right, max_disp):
+        """(disparity, StereoResult or None, seconds) of `method` on one pair."""
+        if method not in METHODS:
+            raise ValueError(f'unknown method {method!r}; choose from {METHODS}')
+        t = time.perf_counter()
+        if method == 'opencv-sgbm':
+            return opencv_sgbm(left, right, max_disp), None, time.perf_counter() - t
+        if method == 'cnn':  # winner-takes-all of the CNN confidence volume alone
+            from .cnn import confidence
+            pipe = self.pipeline('census+gcp', max_disp)
+            cfg = pipe.config
+            _, cof_d = confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16)
+            return cof_d.astype(np.float32), None, time.perf_counter() - t
+        result = self.pipeline(method, max_disp)(left, right)
+        return result.disparity, result, time.perf_counter() - t
+
+
+def select_frames(sources, patterns):
+    """(source, name) pairs of every frame in `sources` whose name matches a pattern."""
+    chosen = []
+    for source in sources:
+        names = list_frames(source)
+        picked = [n for n in names if not patterns or any(fnmatch.fnmatch(n, p) for p in patterns)]
+        chosen += [(source, n) for n in picked]
+    if not chosen:
+        raise SystemExit(f'no frame in {sources} matches {patterns}')
+    return chosen
+
+
+def table(rows, methods, key='bad3'):
+    """The paper's Table 1 layout: one line per method, mean then per-frame values."""
+    frames = list(dict.fromkeys(r['frame'] for r in rows))
+    width = max(len(m) for m in methods) + 2
+    lines = [f'{"method":<{width}}{"mean":>8}  ' + '  '.join(frames),
+             f'{"":<{width}}{"(% of pixels with error > 3 px)" if key == "bad3" else key}']
+    for m in methods:
+        vals = {r['frame']: r[key] for r in rows if r['method'] == m}
+        mean = float(np.mean(list(vals.values())))
+        lines.append(f'{m:<{width}}{mean:8.2f}  ' + '  '.join(f'{vals[f]:>{len(f)}.2f}' for f in frames))
+    return '\n'.join(lines)
+
+
+def parse_overrides(items):
+    """`KEY=VALUE` strings (VALUE parsed as YAML) into a dict of StereoConfig fields."""
+    fields = set(StereoConfig.__dataclass_fields__)
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition('=')
+        if not sep or key not in fields:
+            raise SystemExit(f'--set expects KEY=VALUE with KEY among {sorted(fields)}, got {item!r}')
+        out[key] = yaml.safe_load(value)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--dataset', action='append', required=True,
+                    help="dataset folder in any supported layout (searched recursively; for KITTI the "
+                         "folder holding training/), or 'motorcycle'; repeatable")
+    ap.add_argument('--frames', nargs='+', help='frame names or shell patterns (default: all)')
+    ap.add_argument('--methods', nargs='+', default=['sad', 'census', 'opencv-sgbm'], choices=METHODS)
+    ap.add_argument('--max-disp', type=int, help="disparities searched (default: each frame's own)")
+    ap.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
+    ap.add_argument('--set', action='append', metavar='KEY=VALUE',
+                    help='override a pipeline parameter (e.g. theta=0.7, bf16=true); repeatable')
+    ap.add_argument('--json', type=Path, help='write one row per (method, frame) to this file')
+    ap.add_argument('--out', type=Path, help='write colour-mapped disparity PNGs here')
+    args = ap.parse_args(argv)
+
+    runner = Runner(args.paths, parse_overrides(args.set))
+    rows = []
+    frames = select_frames(args.dataset, args.frames)
+    with tqdm(total=len(frames) * len(args.methods), unit='run', leave=False) as bar:
+        for source, name in frames:
+            frame = load_frame(source, name)
+            if frame.gt is None:
+                raise SystemExit(f'frame {name} has no ground truth to evaluate against')
+            max_disp = args.max_disp or frame.max_disp
+            for method in args.methods:
+                bar.set_description(f'{method} {name}')
+                disp, _, seconds = runner.run(method, frame.left, frame.right, max_disp)
+                rates = error_rates(disp, frame.gt, frame.valid)
+                rows.append({'method': method, 'frame': name, **rates, 'seconds': seconds})
+                if args.out:
+                    save_png(args.out / f'{name.replace("/", "_")}_{method}.png', colorize(disp, max_disp))
+                bar.update()
+    print(table(rows, args.methods))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(rows, indent=1))
+    return rows
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,40 @@
+"""Ground control points (GCPs) and the paper's cost refinement."""
+import numpy as np
+from numba import njit, prange
+
+
+@njit(parallel=True, cache=True)
+def _refine(cost, gcp, cof_d, c_hi, c_low):
+    h, w, nd = cost.shape
+    for y in prange(h):
+        for x in range(w):
+            if gcp[y, x]:
+                d = cof_d[y, x]
+                if 0 <= d < nd:
+                    cost[y, x, d] = c_low
+            else:
+                cost[y, x, :] = c_hi
+
+
+def refine(cost, gcp, cof_d, c_hi, c_low):
+    """Refine a cost volume in place, as the paper does, and return it.
+
+    Every non-GCP pixel gets `c_hi` at all disparities; a GCP keeps its costs except
+    `c_low` at its CNN disparity `cof_d`.
+    """
+    if gcp.shape != cost.shape[:2] or cof_d.shape != cost.shape[:2]:
+        raise ValueError(f'GCP mask {gcp.shape} and CNN disparity {cof_d.shape} must match '
+                         f'the cost volume {cost.shape[:2]}')
+    _refine(cost, np.ascontiguousarray(gcp, np.bool_), np.ascontiguousarray(cof_d, np.int32),
+            np.float32(c_hi), np.float32(c_low))
+    return cost
+
+
+def gcp_quality(gcp, cof_d, gt, valid):
+    """(density, accuracy) in percent: GCPs among the evaluated pixels, and GCPs whose CNN
+    disparity is within 3 px of the ground truth (NaN when there is no GCP)."""
+    sel = gcp & valid
+    n = int(sel.sum())
+    density = 100.0 * n / max(int(valid.sum()), 1)
+    accuracy = 100.0 * float((np.abs(cof_d[sel] - gt[sel]) <= 3).mean()) if n else float('nan')
+    return density, accuracy

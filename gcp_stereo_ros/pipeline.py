@@ -1,0 +1,133 @@
+"""The one stereo pipeline every caller uses: evaluation, the ROS node and the bag tools.
+
+cost volume -> (CNN confidence -> GCPs -> refinement) -> SGM -> winner-takes-all.
+"""
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import cost as cost_mod
+from .gcp import refine
+from .images import gray_pair
+from .sgm import PATHS, aggregate, disparity
+
+# The paper's parameters for each matching cost (Zhong et al., section 4).
+COST_DEFAULTS = {
+    'census': dict(p1=4.0, p2=128.0, theta=0.60, c_hi=200.0, c_low=1.3),
+    'sad': dict(p1=1.0, p2=14.0, theta=0.55, c_hi=5.0, c_low=0.001),
+}
+
+
+@dataclass(frozen=True)
+class StereoConfig:
+    cost: str = 'census'
+    window: int = 9
+    max_disp: int = 128
+    p1: float = COST_DEFAULTS['census']['p1']
+    p2: float = COST_DEFAULTS['census']['p2']
+    paths: int = 16
+    use_gcp: bool = True
+    theta: float = COST_DEFAULTS['census']['theta']
+    c_hi: float = COST_DEFAULTS['census']['c_hi']
+    c_low: float = COST_DEFAULTS['census']['c_low']
+    weights: str = ''  # '' = the weights shipped with the package
+    device: str = 'cpu'
+    bf16: bool = False  # bfloat16 CNN descriptors (CPUs with avx512_bf16 / AMX, or CUDA)
+    subpixel: bool = False
+    lr_check: bool = False
+    median: bool = False
+
+    @classmethod
+    def for_cost(cls, cost, **overrides):
+        """A config with the paper's defaults for `cost`, then `overrides` applied."""
+        if cost not in COST_DEFAULTS:
+            raise ValueError(f'cost must be one of {tuple(COST_DEFAULTS)}, got {cost!r}')
+        return cls(**{'cost': cost, **COST_DEFAULTS[cost], **overrides}).validate()
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes).validate()
+
+    def validate(self):
+        """Return self, or raise ValueError saying which value is out of range and why."""
+        cost_mod.check_window(self.cost, self.window)
+        if not (isinstance(self.max_disp, (int, np.integer)) and 1 <= self.max_disp <= 1024):
+            raise ValueError(f'max_disp must be an integer in [1, 1024], got {self.max_disp!r}')
+        for name in ('p1', 'p2', 'theta', 'c_hi', 'c_low'):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
+        if self.p2 < self.p1:
+            raise ValueError(f'P2 ({self.p2}) must be >= P1 ({self.p1}): a disparity jump may not '
+                             'cost less than a 1 px step')
+        if self.paths not in PATHS:
+            raise ValueError(f'paths must be one of {PATHS}, got {self.paths!r}')
+        if self.theta > 1:
+            raise ValueError(f'theta must be in [0, 1] (the CNN confidence range), got {self.theta}')
+        if self.c_low > self.c_hi:
+            raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
+        if not (self.device == 'cpu' or self.device.startswith('cuda')):
+            raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
+        return self
+
+
+@dataclass
+class StereoResult:
+    disparity: np.ndarray  # float32 (H, W), NaN where invalid
+    gcp: np.ndarray | None  # bool (H, W) GCP mask, None without GCPs
+    cof_c: np.ndarray | None  # float32 (H, W) CNN confidence max_d Vol
+    cof_d: np.ndarray | None  # int32 (H, W) CNN disparity argmax_d Vol
+    seconds: dict  # wall time per stage
+
+
+class StereoPipeline:
+    """Runs a StereoConfig on image pairs; the CNN is loaded once, on first use."""
+
+    def __init__(self, config=None, net=None):
+        self.config = (config or StereoConfig()).validate()
+        self._net = net
+
+    def with_config(self, config):
+        """A pipeline for `config` that keeps this one's CNN when weights and device match."""
+        same = (config.weights, config.device) == (self.config.weights, self.config.device)
+        return StereoPipeline(config, self._net if same else None)
+
+    @property
+    def net(self):
+        if self._net is None:
+            from .cnn import load_net  # torch is imported only when GCPs are used
+            self._net = load_net(self.config.weights or None, self.config.device)
+        return self._net
+
+    def __call__(self, left, right):
+        cfg = self.config
+        net = self.net if cfg.use_gcp else None
+        seconds = {}
+        t = time.perf_counter()
+
+        def lap(stage):
+            nonlocal t
+            now = time.perf_counter()
+            seconds[stage] = now - t
+            t = now
+
+        left, right = gray_pair(left, right)
+        gcp = cof_c = cof_d = None
+        if cfg.use_gcp:
+            from .cnn import confidence
+            cof_c, cof_d = confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16)
+            lap('confidence')
+        volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window)
+        lap('cost')
+        if cfg.use_gcp:
+            gcp = cof_c > cfg.theta
+            refine(volume, gcp, cof_d, cfg.c_hi, cfg.c_low)
+            lap('refine')
+        total = aggregate(volume, cfg.p1, cfg.p2, cfg.paths)
+        del volume
+        lap('sgm')
+        disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)
+        lap('wta')
+        return StereoResult(disp, gcp, cof_c, cof_d, seconds)

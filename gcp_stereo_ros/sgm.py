@@ -1,0 +1,161 @@
+"""Semi-global matching (Hirschmueller 2008) on a float32 cost volume (H, W, D).
+
+Path cost along direction r = (dx, dy), with p - r the previous pixel on the path:
+    L_r(p, d) = C(p, d) + min(L_r(p-r, d), L_r(p-r, d+-1) + P1, min_k L_r(p-r, k) + P2)
+                - min_k L_r(p-r, k)
+and L_r(p, d) = C(p, d) where p - r lies outside the image. S = sum over paths; the
+disparity is argmin_d S (first minimum on ties).
+
+Paths: 4 (horizontal, vertical), 8 (+ diagonals), 16 (+ the 8 knight moves (+-1, +-2),
+(+-2, +-1), the paper's default). The image is swept three times: the two horizontal paths
+row by row (rows in parallel), then every path coming from above in one top-down sweep and
+every path from below in one bottom-up sweep (pixels of a row in parallel, the previous two
+rows of each path kept in a ring buffer). C is read and S written once per sweep.
+"""
+import cv2
+import numpy as np
+from numba import njit, prange
+
+PATHS = (4, 8, 16)
+
+
+def directions(paths):
+    """Path directions (dx, dy) with dy >= 0 (from above or along the row; the sweeps add
+    the mirrored ones). Raises ValueError unless `paths` is 4, 8 or 16."""
+    if paths not in PATHS:
+        raise ValueError(f'paths must be one of {PATHS}, got {paths!r}')
+    dirs = [(1, 0), (0, 1)]
+    if paths >= 8:
+        dirs += [(1, 1), (-1, 1)]
+    if paths == 16:
+        dirs += [(1, 2), (-1, 2), (2, 1), (-2, 1)]
+    return dirs
+
+
+@njit(inline='always', fastmath=True)
+def _path_step(c, prev, prev_min, p1, p2, out):
+    """out = L_r(p, .) from c = C(p, .) and prev = L_r(p - r, .); returns min(out)."""
+    nd = c.shape[0]
+    jump = prev_min + p2
+    if nd == 1:
+        out[0] = c[0] + min(prev[0], jump) - prev_min
+        return out[0]
+    out[0] = c[0] + min(min(prev[0], prev[1] + p1), jump) - prev_min
+    for d in range(1, nd - 1):
+        out[d] = c[d] + min(min(prev[d], min(prev[d - 1], prev[d + 1]) + p1), jump) - prev_min
+    out[nd - 1] = c[nd - 1] + min(min(prev[nd - 1], prev[nd - 2] + p1), jump) - prev_min
+    m = out[0]
+    for d in range(1, nd):
+        m = min(m, out[d])
+    return m
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def _horizontal(cost, p1, p2, total):
+    """total = L_(1,0) + L_(-1,0): both horizontal paths of each row."""
+    h, w, nd = cost.shape
+    for y in prange(h):
+        a = np.empty(nd, np.float32)
+        b = np.empty(nd, np.float32)
+        total[y, 0] = cost[y, 0]
+        m = cost[y, 0].min()
+        a[:] = cost[y, 0]
+        for x in range(1, w):
+            prev, cur = (a, b) if x % 2 == 1 else (b, a)
+            m = _path_step(cost[y, x], prev, m, p1, p2, cur)
+            total[y, x] = cur
+        a[:] = cost[y, w - 1]
+        total[y, w - 1] += a
+        m = a.min()
+        for x in range(w - 2, -1, -1):
+            prev, cur = (a, b) if (w - 1 - x) % 2 == 1 else (b, a)
+            m = _path_step(cost[y, x], prev, m, p1, p2, cur)
+            total[y, x] += cur
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def _sweep(cost, p1, p2, total, dirs, down):
+    """total += L_r for each r in dirs; dy > 0 counts rows back in sweep order."""
+    h, w, nd = cost.shape
+    buf = np.empty((dirs.shape[0], 3, w, nd), np.float32)
+    mins = np.empty((dirs.shape[0], 3, w), np.float32)
+    for i in range(h):
+        y = i if down else h - 1 - i
+        slot = i % 3
+        for x in prange(w):
+            c = cost[y, x]
+            acc = total[y, x]
+            for k in range(dirs.shape[0]):
+                px = x - dirs[k, 0]
+                back = i - dirs[k, 1]
+                cur = buf[k, slot, x]
+                if back >= 0 and 0 <= px < w:
+                    ps = back % 3
+                    mins[k, slot, x] = _path_step(c, buf[k, ps, px], mins[k, ps, px], p1, p2, cur)
+                else:
+                    cur[:] = c
+                    mins[k, slot, x] = c.min()
+                for d in range(nd):
+                    acc[d] += cur[d]
+
+
+def aggregate(cost, p1, p2, paths=16):
+    """Summed path costs S (H, W, D) float32 of a cost volume (see module doc)."""
+    cost = np.ascontiguousarray(cost, dtype=np.float32)
+    if cost.ndim != 3 or 0 in cost.shape:
+        raise ValueError(f'cost volume must have shape (H, W, D) with no empty axis, got {cost.shape}')
+    p1, p2 = float(p1), float(p2)
+    if not (0 <= p1 <= p2):
+        raise ValueError(f'SGM penalties need 0 <= P1 <= P2, got P1={p1}, P2={p2}')
+    dirs = directions(paths)
+    total = np.empty_like(cost)
+    _horizontal(cost, np.float32(p1), np.float32(p2), total)
+    down = np.array([d for d in dirs if d[1] > 0], np.int64)
+    # Seen from a bottom-up sweep, (dx, dy) from below is (-dx, dy) from above.
+    up = np.array([(-dx, dy) for dx, dy in down], np.int64)
+    _sweep(cost, np.float32(p1), np.float32(p2), total, down, True)
+    _sweep(cost, np.float32(p1), np.float32(p2), total, up, False)
+    return total
+
+
+@njit(parallel=True, cache=True)
+def _wta(total, subpixel, lr_tol, out, consistent):
+    h, w, nd = total.shape
+    for y in prange(h):
+        for x in range(w):
+            s = total[y, x]
+            best = 0
+            for d in range(1, nd):
+                if s[d] < s[best]:
+                    best = d
+            disp = np.float32(best)
+            if subpixel and 0 < best < nd - 1:
+                curv = s[best - 1] - 2 * s[best] + s[best + 1]
+                if curv > 0:
+                    disp += (s[best - 1] - s[best + 1]) / (2 * curv)
+            if lr_tol >= 0:
+                # Right-view WTA at xr = x - best: argmin_d S(xr + d, d) over cells inside the image.
+                xr = x - best
+                rbest = 0
+                for d in range(1, min(nd, w - xr)):
+                    if total[y, xr + d, d] < total[y, xr + rbest, rbest]:
+                        rbest = d
+                consistent[y, x] = abs(rbest - best) <= lr_tol
+            out[y, x] = disp
+
+
+def disparity(total, subpixel=False, lr_check=False, median=False):
+    """Winner-takes-all disparity (H, W) float32 from summed path costs S.
+
+    Options (all off by default; the paper uses none): `subpixel` parabola fit through the
+    minimum and its neighbours; `median` 3x3 median filter; `lr_check` marks NaN where the
+    right-view winner at x - d differs from d by more than 1 px (applied after the median,
+    so invalid pixels stay NaN).
+    """
+    out = np.empty(total.shape[:2], np.float32)
+    consistent = np.ones(total.shape[:2], np.bool_)
+    _wta(total, subpixel, 1 if lr_check else -1, out, consistent)
+    if median:
+        out = cv2.medianBlur(out, 3)
+    out[~consistent] = np.nan
+    return out

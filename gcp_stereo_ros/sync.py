@@ -1,0 +1,91 @@
+"""Left/right stereo pairing by header stamp, a ROS-free stand-in for message_filters.
+
+Shared by the node and the offline rosbag tools. For two inputs it behaves like
+message_filters' ExactTime policy (approximate=False: identical stamps) or a simplified
+ApproximateTime policy (approximate=True: stamps at most `tolerance` seconds apart).
+"""
+import bisect
+import math
+
+SIDES = ('left', 'right')
+
+
+class PairSync:
+    """Pair left and right messages by stamp; stamps may arrive out of order.
+
+    A message is paired as soon as the other side holds a message within tolerance (the
+    closest one, the older one on a tie), so keep `tolerance` below half the frame period.
+    Each side queues at most `queue_size` unpaired messages; the oldest stamp goes first.
+    Emitting a pair discards, per side, every queued message stamped at or before the
+    paired one, and later arrivals stamped at or before it are discarded on arrival: a
+    newer pair won, so they can never be used. `tolerance` is ignored when exact.
+
+    Counters: `pairs`, `dropped_left`, `dropped_right` (messages discarded unpaired).
+    """
+
+    def __init__(self, queue_size=10, approximate=False, tolerance=0.0):
+        if isinstance(queue_size, bool) or not isinstance(queue_size, int) or queue_size < 1:
+            raise ValueError(f'queue_size must be an integer >= 1, got {queue_size!r}')
+        if not 0 <= tolerance < math.inf:
+            raise ValueError(f'tolerance must be a finite number of seconds >= 0, got {tolerance!r}')
+        self.queue_size = queue_size
+        self.tolerance_ns = round(tolerance * 1e9) if approximate else 0
+        self.pairs = 0
+        self.dropped_left = 0
+        self.dropped_right = 0
+        self._stamps = {side: [] for side in SIDES}  # ascending stamps, parallel to _msgs
+        self._msgs = {side: [] for side in SIDES}
+        self._last = {side: None for side in SIDES}  # stamps of the last emitted pair
+        self._streak = {side: 0 for side in SIDES}
+
+    def add(self, side, stamp_ns, msg):
+        """Queue `msg` of `side`; return (stamp_left_ns, left_msg, right_msg) once paired, else None."""
+        other = _other(side)
+        if self._last[side] is not None and stamp_ns <= self._last[side]:
+            self._drop(side, 1)
+            return None
+        stamps = self._stamps[other]
+        lo = bisect.bisect_left(stamps, stamp_ns - self.tolerance_ns)
+        hi = bisect.bisect_right(stamps, stamp_ns + self.tolerance_ns)
+        if lo == hi:
+            i = bisect.bisect_right(self._stamps[side], stamp_ns)
+            self._stamps[side].insert(i, stamp_ns)
+            self._msgs[side].insert(i, msg)
+            if len(self._stamps[side]) > self.queue_size:
+                del self._stamps[side][0], self._msgs[side][0]
+                self._drop(side, 1)
+            return None
+        j = min(range(lo, hi), key=lambda k: abs(stamps[k] - stamp_ns))
+        match_stamp, match = stamps.pop(j), self._msgs[other].pop(j)
+        self._discard_upto(side, stamp_ns)
+        self._discard_upto(other, match_stamp)
+        self._last[side], self._last[other] = stamp_ns, match_stamp
+        self._streak = {s: 0 for s in SIDES}
+        self.pairs += 1
+        if side == 'left':
+            return stamp_ns, msg, match
+        return match_stamp, match, msg
+
+    def unmatched_streak(self, side):
+        """Messages of `side` discarded unpaired since the last pair; growth means its twin goes missing."""
+        _other(side)
+        return self._streak[side]
+
+    def _discard_upto(self, side, stamp_ns):
+        n = bisect.bisect_right(self._stamps[side], stamp_ns)
+        del self._stamps[side][:n]
+        del self._msgs[side][:n]
+        self._drop(side, n)
+
+    def _drop(self, side, n):
+        self._streak[side] += n
+        if side == 'left':
+            self.dropped_left += n
+        else:
+            self.dropped_right += n
+
+
+def _other(side):
+    if side not in SIDES:
+        raise ValueError(f"side must be 'left' or 'right', got {side!r}")
+    return 'right' if side == 'left' else 'left'

@@ -1,0 +1,38 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'gcp_stereo_ros'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    package_data={PACKAGE: ['weights/*.pt']},
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*')),
+        ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
+    ],
+    # Runtime dependencies come from package.xml (rosdep) on a ROS install and from
+    # requirements.txt (pinned) in a venv; listing them here would make setuptools'
+    # script wrappers refuse to start when apt provides them under other names.
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='gcp_stereo_ros maintainers',
+    maintainer_email='maintainers@gcp-stereo-ros.invalid',
+    description='CNN ground control points steering semi-global matching, as a ROS 2 node',
+    license='BSD-3-Clause',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'gcp_stereo_node = gcp_stereo_ros.node:main',
+            'gcp-stereo-eval = gcp_stereo_ros.evaluate:main',
+            'gcp-stereo-bench = gcp_stereo_ros.bench:main',
+            'gcp-stereo-train = gcp_stereo_ros.train:main',
+            'gcp-stereo-plot = gcp_stereo_ros.plot:main',
+            'gcp-stereo-bag = gcp_stereo_ros.bag:main',
+        ],
+    },
+)

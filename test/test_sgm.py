@@ -1,0 +1,60 @@
+"""SGM: exact agreement with a brute-force reference, and the optional post-processing."""
+import numpy as np
+import pytest
+
+from gcp_stereo_ros.sgm import aggregate, directions, disparity
+
+
+def reference_aggregate(cost, p1, p2, paths):
+    """Plain recursion over each path, straight from the SGM equations."""
+    h, w, nd = cost.shape
+    total = np.zeros(cost.shape)
+    for dx, dy in directions(paths):
+        for rx, ry in ((dx, dy), (-dx, -dy)):
+            lr = {}
+
+            def path_cost(y, x):
+                if (y, x) not in lr:
+                    py, px = y - ry, x - rx
+                    if 0 <= py < h and 0 <= px < w:
+                        prev = path_cost(py, px)
+                        m = prev.min()
+                        out = np.empty(nd)
+                        for d in range(nd):
+                            best = min(prev[d], m + p2)
+                            if d > 0:
+                                best = min(best, prev[d - 1] + p1)
+                            if d < nd - 1:
+                                best = min(best, prev[d + 1] + p1)
+                            out[d] = cost[y, x, d] + best - m
+                        lr[y, x] = out
+                    else:
+                        lr[y, x] = cost[y, x].astype(float)
+                return lr[y, x]
+
+            for y in range(h):
+                for x in range(w):
+                    total[y, x] += path_cost(y, x)
+    return total
+
+
+@pytest.mark.parametrize('paths', [4, 8, 16])
+@pytest.mark.parametrize('shape', [(7, 11, 5), (9, 6, 1), (1, 8, 4), (5, 1, 3)])
+def test_aggregate_equals_reference(paths, shape):
+    rng = np.random.default_rng(sum(shape) + paths)
+    cost = rng.integers(0, 40, size=shape).astype(np.float32)
+    got = aggregate(cost, 3, 17, paths)
+    want = reference_aggregate(cost, 3, 17, paths)
+    np.testing.assert_array_equal(got, want.astype(np.float32))
+    # WTA takes the first minimum on ties, as np.argmin does.
+    np.testing.assert_array_equal(disparity(got), np.argmin(want, axis=2).astype(np.float32))
+
+
+def test_paths_and_penalties_validated():
+    cost = np.zeros((4, 4, 3), np.float32)
+    with pytest.raises(ValueError, match='paths'):
+        aggregate(cost, 1, 2, paths=6)
+    with pytest.raises(ValueError, match='P1'):
+        aggregate(cost, 5, 2)
+    with pytest.raises(ValueError, match='shape'):
+        aggregate(np.zeros((4, 4), np.float32), 1, 2)

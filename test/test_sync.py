@@ -1,0 +1,142 @@
+"""PairSync: exact and approximate stereo pairing, drops, and the unmatched streak."""
+import pytest
+
+from gcp_stereo_ros.sync import PairSync
+
+MS = 1_000_000  # nanoseconds
+
+
+def test_exact_pairs_identical_stamps_in_either_order():
+    sync = PairSync()
+    assert sync.add('left', 100, 'L100') is None
+    assert sync.add('right', 100, 'R100') == (100, 'L100', 'R100')
+    assert sync.add('right', 200, 'R200') is None
+    assert sync.add('left', 200, 'L200') == (200, 'L200', 'R200')
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (2, 0, 0)
+
+
+def test_exact_drops_and_counts_unmatched_stamps():
+    sync = PairSync()
+    assert sync.add('left', 100, 'L100') is None
+    assert sync.add('right', 101, 'R101') is None  # 1 ns apart: not exact
+    assert sync.add('left', 200, 'L200') is None
+    assert sync.add('right', 200, 'R200') == (200, 'L200', 'R200')
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (1, 1, 1)
+    # Older than the emitted pair: can never pair any more, discarded on arrival.
+    assert sync.add('left', 101, 'L101') is None
+    assert sync.add('right', 200, 'R200 again') is None
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (1, 2, 2)
+
+
+def test_exact_out_of_order_arrival():
+    sync = PairSync()
+    assert sync.add('left', 300, 'L300') is None
+    assert sync.add('left', 100, 'L100') is None
+    assert sync.add('right', 200, 'R200') is None
+    assert sync.add('right', 100, 'R100') == (100, 'L100', 'R100')
+    assert sync.add('left', 200, 'L200') == (200, 'L200', 'R200')
+    assert sync.add('right', 300, 'R300') == (300, 'L300', 'R300')
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (3, 0, 0)
+
+
+def test_exact_queue_overflow_drops_oldest_stamp():
+    sync = PairSync(queue_size=3)
+    for stamp in (400, 100, 300, 200):  # 4 > 3: stamp 100 goes although it came second
+        assert sync.add('left', stamp, f'L{stamp}') is None
+    assert sync.dropped_left == 1
+    assert sync.add('right', 100, 'R100') is None
+    assert sync.add('right', 200, 'R200') == (200, 'L200', 'R200')
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (1, 1, 1)  # R100 discarded by the pair
+
+
+def test_pair_discards_everything_older_on_both_sides():
+    sync = PairSync()
+    for stamp in (100, 200, 400):
+        sync.add('left', stamp, f'L{stamp}')
+    for stamp in (150, 250):
+        sync.add('right', stamp, f'R{stamp}')
+    assert sync.add('right', 400, 'R400') == (400, 'L400', 'R400')
+    assert (sync.dropped_left, sync.dropped_right) == (2, 2)
+    assert sync.add('left', 250, 'L250') is None  # R250 was discarded
+    assert sync.dropped_left == 3
+
+
+def test_exact_ignores_tolerance():
+    sync = PairSync(approximate=False, tolerance=1.0)
+    sync.add('left', 100, 'L')
+    assert sync.add('right', 101, 'R') is None
+
+
+def test_approximate_pairs_within_tolerance_only():
+    sync = PairSync(approximate=True, tolerance=0.005)
+    assert sync.add('left', 1000 * MS, 'L1') is None
+    assert sync.add('right', 1005 * MS, 'R1') == (1000 * MS, 'L1', 'R1')  # exactly at the tolerance
+    assert sync.add('left', 2000 * MS, 'L2') is None
+    assert sync.add('right', 2005 * MS + 1, 'R2') is None  # 1 ns beyond it
+    assert sync.add('right', 1997 * MS, 'R3') == (2000 * MS, 'L2', 'R3')
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (2, 0, 0)  # R2 is newer: still queued
+
+
+def test_approximate_chooses_closest_match():
+    sync = PairSync(approximate=True, tolerance=0.010)
+    sync.add('left', 100 * MS, 'L100')
+    sync.add('left', 106 * MS, 'L106')
+    sync.add('left', 111 * MS, 'L111')
+    assert sync.add('right', 108 * MS, 'R108') == (106 * MS, 'L106', 'R108')
+    assert sync.dropped_left == 1  # L100; L111 may still pair
+    assert sync.add('right', 112 * MS, 'R112') == (111 * MS, 'L111', 'R112')
+
+
+def test_approximate_tie_keeps_the_newer_candidate():
+    sync = PairSync(approximate=True, tolerance=0.010)
+    sync.add('left', 100 * MS, 'L100')
+    sync.add('left', 106 * MS, 'L106')
+    assert sync.add('right', 103 * MS, 'R103') == (100 * MS, 'L100', 'R103')
+    assert sync.add('right', 107 * MS, 'R107') == (106 * MS, 'L106', 'R107')
+    assert sync.dropped_left == 0
+
+
+def test_approximate_out_of_order_arrival():
+    sync = PairSync(approximate=True, tolerance=0.002)
+    assert sync.add('right', 301 * MS, 'R301') is None
+    assert sync.add('right', 101 * MS, 'R101') is None
+    assert sync.add('left', 200 * MS, 'L200') is None
+    assert sync.add('left', 100 * MS, 'L100') == (100 * MS, 'L100', 'R101')
+    assert sync.add('left', 300 * MS, 'L300') == (300 * MS, 'L300', 'R301')
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (2, 1, 0)  # L200 never got a twin
+
+
+def test_unmatched_streak_grows_while_one_side_is_missing():
+    sync = PairSync(queue_size=2)
+    for i in range(6):  # the right images of 6 frames are lost
+        sync.add('left', i, f'L{i}')
+    assert sync.unmatched_streak('left') == 4
+    assert sync.unmatched_streak('right') == 0
+    sync.add('right', 3, 'R3')  # older than queued L4, L5: kept
+    assert sync.unmatched_streak('right') == 0
+    assert sync.add('right', 5, 'R5') == (5, 'L5', 'R5')
+    assert (sync.dropped_left, sync.dropped_right) == (5, 1)
+    assert sync.unmatched_streak('left') == sync.unmatched_streak('right') == 0
+    sync.add('right', 4, 'R4')  # older than the pair
+    assert sync.unmatched_streak('right') == 1
+
+
+@pytest.mark.parametrize('kwargs, reason', [
+    ({'queue_size': 0}, 'queue_size'),
+    ({'queue_size': 2.5}, 'queue_size'),
+    ({'queue_size': True}, 'queue_size'),
+    ({'tolerance': -0.1}, 'tolerance'),
+    ({'tolerance': float('nan')}, 'tolerance'),
+    ({'tolerance': float('inf')}, 'tolerance'),
+])
+def test_rejects_bad_arguments(kwargs, reason):
+    with pytest.raises(ValueError, match=reason):
+        PairSync(**kwargs)
+
+
+def test_rejects_unknown_side():
+    sync = PairSync()
+    with pytest.raises(ValueError, match="'left' or 'right'.*'center'"):
+        sync.add('center', 0, None)
+    with pytest.raises(ValueError, match="'left' or 'right'"):
+        sync.unmatched_streak('Left')
