@@ -101,9 +101,11 @@ class StereoPipeline:
             self._net = load_net(self.config.weights or None, self.config.device)
         return self._net
 
-    def __call__(self, left, right):
+    def __call__(self, left, right, confidence=None):
+        """StereoResult of a pair. `confidence`: (cof_c, cof_d) of an earlier run on the same
+        pair and max_disp, to sweep GCP/SGM parameters without running the CNN again."""
         cfg = self.config
-        net = self.net if cfg.use_gcp else None
+        net = self.net if cfg.use_gcp and confidence is None else None
         seconds = {}
         t = time.perf_counter()
 
@@ -115,10 +117,14 @@ class StereoPipeline:
 
         left, right = gray_pair(left, right)
         gcp = cof_c = cof_d = None
-        if cfg.use_gcp:
-            from .cnn import confidence
-            cof_c, cof_d = confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16)
+        if net is not None:
+            from .cnn import best_match, image_descriptors
+            descriptors = image_descriptors(net, left, right, cfg.device, cfg.bf16)
+            lap('cnn')
+            confidence = best_match(*descriptors, cfg.max_disp)
             lap('confidence')
+        if cfg.use_gcp:
+            cof_c, cof_d = confidence
         volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window)
         lap('cost')
         if cfg.use_gcp:

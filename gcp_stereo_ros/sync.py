@@ -8,6 +8,7 @@ import bisect
 import math
 
 SIDES = ('left', 'right')
+RESTART_NS = 1_000_000_000  # a stamp this far before the last pair starts a new stream
 
 
 class PairSync:
@@ -18,7 +19,9 @@ class PairSync:
     Each side queues at most `queue_size` unpaired messages; the oldest stamp goes first.
     Emitting a pair discards, per side, every queued message stamped at or before the
     paired one, and later arrivals stamped at or before it are discarded on arrival: a
-    newer pair won, so they can never be used. `tolerance` is ignored when exact.
+    newer pair won, so they can never be used. A stamp more than RESTART_NS before the last
+    pair means the stream restarted (a looped bag, a camera reset): the queues are cleared
+    and pairing starts afresh. `tolerance` is ignored when exact.
 
     Counters: `pairs`, `dropped_left`, `dropped_right` (messages discarded unpaired).
     """
@@ -41,6 +44,10 @@ class PairSync:
     def add(self, side, stamp_ns, msg):
         """Queue `msg` of `side`; return (stamp_left_ns, left_msg, right_msg) once paired, else None."""
         other = _other(side)
+        if self._last[side] is not None and stamp_ns < self._last[side] - RESTART_NS:
+            for s in SIDES:
+                self._drop(s, len(self._stamps[s]))
+                self._stamps[s], self._msgs[s], self._last[s] = [], [], None
         if self._last[side] is not None and stamp_ns <= self._last[side]:
             self._drop(side, 1)
             return None

@@ -140,3 +140,13 @@ def test_rejects_unknown_side():
         sync.add('center', 0, None)
     with pytest.raises(ValueError, match="'left' or 'right'"):
         sync.unmatched_streak('Left')
+
+
+def test_stream_restart_starts_pairing_afresh():
+    sync = PairSync()
+    assert sync.add('left', 50_000_000_000, 'l1') is None
+    assert sync.add('right', 50_000_000_000, 'r1') == (50_000_000_000, 'l1', 'r1')
+    assert sync.add('left', 49_900_000_000, 'late') is None  # a straggler: dropped
+    assert sync.dropped_left == 1
+    assert sync.add('left', 1_000_000_000, 'l2') is None  # 49 s back: a looped bag
+    assert sync.add('right', 1_000_000_000, 'r2') == (1_000_000_000, 'l2', 'r2')

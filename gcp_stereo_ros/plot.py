@@ -1,0 +1,158 @@
+"""gcp-stereo-plot: the paper's experiment figures as matplotlib PNGs.
+
+  sweep  error (> 3 px), GCP density and GCP accuracy of a method over a parameter grid, per frame
+         (Figure 4: `--grid theta=0:1:0.05`); the best grid point is printed, which is how
+         theta, c_hi, c_low, P1 and P2 are chosen by cross-validation.
+  bars   per-frame improvement of +GCP over its baseline from a `gcp-stereo-eval --json`
+         file (Figures 5 and 6).
+"""
+import argparse
+import itertools
+import json
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+
+from .evaluate import Runner, method_config, parse_overrides, select_frames
+from .datasets import load_frame
+from .gcp import gcp_quality
+from .metrics import error_rates
+
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
+
+
+def parse_grid(items):
+    """`name=lo:hi:step` or `name=v1,v2,...` -> {name: [values]} (StereoConfig field names)."""
+    grid = {}
+    for item in items:
+        name, _, spec = item.partition('=')
+        if ':' in spec:
+            lo, hi, step = (float(v) for v in spec.split(':'))
+            values = [round(v, 6) for v in np.arange(lo, hi + step / 2, step)]
+        else:
+            values = [float(v) if '.' in v or 'e' in v else int(v) for v in spec.split(',')]
+        if not name or not values:
+            raise SystemExit(f'--grid expects NAME=LO:HI:STEP or NAME=V1,V2,..., got {item!r}')
+        grid[name] = values
+    return grid
+
+
+def sweep(args):
+    grid = parse_grid(args.grid)
+    runner = Runner(args.paths, parse_overrides(args.set))
+    rows = []
+    for source, name in select_frames(args.dataset, args.frames):
+        frame = load_frame(source, name)
+        max_disp = args.max_disp or frame.max_disp
+        base = runner.pipeline(args.method, max_disp)
+        conf = None
+        for values in itertools.product(*grid.values()):
+            point = dict(zip(grid, values))
+            try:
+                config = method_config(args.method, max_disp, args.paths, {**runner.overrides, **point})
+            except ValueError:  # e.g. P2 < P1: not a valid set-up, so not a candidate
+                continue
+            pipe = base.with_config(config)
+            result = pipe(frame.left, frame.right, confidence=conf)
+            row = {'frame': name, **point, 'bad3': error_rates(result.disparity, frame.gt, frame.valid)['bad3']}
+            if result.gcp is not None:
+                conf = (result.cof_c, result.cof_d)
+                row['gcp_density'], row['gcp_accuracy'] = gcp_quality(result.gcp, result.cof_d, frame.gt, frame.valid)
+            rows.append(row)
+        print(f'{name}: best ' + _best(rows, name, grid))
+    frames = list(dict.fromkeys(r['frame'] for r in rows))
+    means = {}
+    for r in rows:
+        means.setdefault(tuple(r[k] for k in grid), []).append(r['bad3'])
+    best = min(means, key=lambda k: np.mean(means[k]))
+    print(f'mean over {len(frames)} frame(s): best ' + ', '.join(f'{k}={v}' for k, v in zip(grid, best))
+          + f' -> {np.mean(means[best]):.2f} % bad3')
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = 'sweep_' + args.method.replace('+', '_')
+    (args.out / f'{stem}.json').write_text(json.dumps(rows, indent=1))
+    _plot_sweep(rows, grid, dict(zip(grid, best)), args.method, args.out / f'{stem}.png')
+
+
+def _best(rows, frame, grid):
+    r = min((r for r in rows if r['frame'] == frame), key=lambda r: r['bad3'])
+    return ', '.join(f'{k}={r[k]}' for k in grid) + f' -> {r["bad3"]:.2f} % bad3'
+
+
+def _plot_sweep(rows, grid, best, method, path):
+    """Error (and GCP density and accuracy) against the first grid parameter, the others
+    fixed at their best mean values."""
+    x_name = next(iter(grid))
+    fixed = {k: v for k, v in best.items() if k != x_name}
+    keys = ('bad3', 'gcp_density', 'gcp_accuracy') if 'gcp_density' in rows[0] else ('bad3',)
+    fig, axes = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4), squeeze=False)
+    axes = axes[0]
+    for frame in dict.fromkeys(r['frame'] for r in rows):
+        sel = [r for r in rows if r['frame'] == frame and all(r[k] == v for k, v in fixed.items())]
+        xs = [r[x_name] for r in sel]
+        for ax, key in zip(axes, keys):
+            ax.plot(xs, [r[key] for r in sel], marker='.', label=frame)
+    for ax, title in zip(axes, ('error > 3 px (%)', 'GCP density (% of GT pixels)', 'GCP accuracy (%)')):
+        ax.set_xlabel(x_name)
+        ax.set_title(f'{method}: {title}')
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    if fixed:
+        fig.suptitle(', '.join(f'{k}={v}' for k, v in fixed.items()), fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f'wrote {path}')
+
+
+def bars(args):
+    rows = json.loads(args.json.read_text())
+    frames = list(dict.fromkeys(r['frame'] for r in rows))
+    err = {(r['method'], r['frame']): r['bad3'] for r in rows}
+    pairs = [(c, f'{c}+gcp') for c in ('sad', 'census') if all((m, f) in err for m in (c, f'{c}+gcp') for f in frames)]
+    if not pairs:
+        raise SystemExit(f'{args.json} needs both a cost and its +gcp method on every frame')
+    fig, axes = plt.subplots(1, len(pairs), figsize=(max(6, 1.2 * len(frames)) * len(pairs), 4), squeeze=False)
+    for ax, (base, gcp) in zip(axes[0], pairs):
+        x = np.arange(len(frames))
+        ax.bar(x - 0.2, [err[base, f] for f in frames], 0.4, label=f'{base.upper()}+SGM')
+        ax.bar(x + 0.2, [err[gcp, f] for f in frames], 0.4, label=f'{base.upper()}+GCP+SGM')
+        for i, f in enumerate(frames):
+            cut = 100 * (1 - err[gcp, f] / err[base, f]) if err[base, f] else 0.0
+            ax.annotate(f'{-cut:+.0f}%', (i + 0.2, err[gcp, f]), ha='center', va='bottom', fontsize=8)
+        ax.set_xticks(x, [f.split('/')[-1] for f in frames], rotation=30, ha='right')
+        ax.set_ylabel('error > 3 px (%)')
+        ax.legend()
+        ax.grid(axis='y', alpha=0.3)
+    fig.tight_layout()
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / 'gcp_improvement.png'
+    fig.savefig(path, dpi=110)
+    print(f'wrote {path}')
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='gcp-stereo-plot', description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest='command', required=True)
+    sp = sub.add_parser('sweep', help='error and GCP quality over a parameter grid')
+    sp.add_argument('--dataset', action='append', required=True)
+    sp.add_argument('--frames', nargs='+')
+    sp.add_argument('--method', choices=('census+gcp', 'sad+gcp', 'census', 'sad'), default='census+gcp')
+    sp.add_argument('--grid', action='append', required=True, metavar='NAME=LO:HI:STEP|V1,V2',
+                    help='StereoConfig field and its values, e.g. theta=0:1:0.05 or p2=64,128; repeatable')
+    sp.add_argument('--set', action='append', metavar='KEY=VALUE', help='fixed parameter override')
+    sp.add_argument('--max-disp', type=int)
+    sp.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
+    sp.add_argument('--out', type=Path, default=Path('out/plots'))
+    sp.set_defaults(run=sweep)
+    bp = sub.add_parser('bars', help='per-frame improvement of +GCP over its baseline')
+    bp.add_argument('--json', type=Path, required=True, help='a gcp-stereo-eval --json file')
+    bp.add_argument('--out', type=Path, default=Path('out/plots'))
+    bp.set_defaults(run=bars)
+    args = ap.parse_args(argv)
+    args.run(args)
+
+
+if __name__ == '__main__':
+    main()
