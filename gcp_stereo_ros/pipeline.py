@@ -122,6 +122,7 @@ class StereoPipeline:
             descriptors = image_descriptors(net, left, right, cfg.device, cfg.bf16)
             lap('cnn')
             confidence = best_match(*descriptors, cfg.max_disp)
+            del descriptors  # 2 x (H, W, 64) float32: not held through cost and SGM
             lap('confidence')
         if cfg.use_gcp:
             cof_c, cof_d = confidence

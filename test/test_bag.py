@@ -1,0 +1,342 @@
+"""gcp-stereo-bag on real data: make -> run round trips, bad input bags, play into live subscribers."""
+import contextlib
+import io
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from rosbags.rosbag2 import Reader, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from gcp_stereo_ros import bag
+from gcp_stereo_ros.datasets import load_frame
+from gcp_stereo_ros.graph import start_node, stop
+from gcp_stereo_ros.metrics import error_rates
+from gcp_stereo_ros.params import config_from_params
+from gcp_stereo_ros.pipeline import StereoPipeline
+from gcp_stereo_ros.rosimage import image_to_array
+
+REPO = Path(__file__).resolve().parents[1]
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)  # read back independently of the module under test
+PARAMS = {'max_disparity': 64}  # the node's defaults otherwise (census, GCPs, shipped weights)
+
+
+@pytest.fixture(scope='module')
+def params_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp('params') / 'gcp_stereo.yaml'
+    path.write_text(yaml.safe_dump({'gcp_stereo_node': {'ros__parameters': PARAMS}}))
+    return path
+
+
+@pytest.fixture(scope='module')
+def expected():
+    """(dataset, frame name) -> (Frame, StereoResult of the pipeline the node would build)."""
+    pipeline = StereoPipeline(config_from_params(PARAMS))
+    cache = {}
+
+    def get(dataset, name):
+        if name not in cache:
+            frame = load_frame(dataset, name)
+            cache[name] = frame, pipeline(frame.left, frame.right)
+        return cache[name]
+    return get
+
+
+def read_bag(path):
+    """({topic: [(bag timestamp, message)]}, {topic: connection}) of a whole bag."""
+    msgs = {}
+    with Reader(path) as reader:
+        conns = {c.topic: c for c in reader.connections}
+        for conn, timestamp, raw in reader.messages():
+            msgs.setdefault(conn.topic, []).append((timestamp, TYPESTORE.deserialize_cdr(raw, conn.msgtype)))
+    return msgs, conns
+
+
+def stamp_of(msg):
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def cli(*args):
+    """`python -m gcp_stereo_ros.bag ARGS` as a user runs it, in the test's ROS environment."""
+    return subprocess.run([sys.executable, '-m', 'gcp_stereo_ros.bag', *map(str, args)], cwd=REPO, env=os.environ,
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_make_writes_the_node_inputs_and_ground_truth(tmp_path, data_dir):
+    names = ['kitti2012/000070_10', 'middlebury_v2/venus']
+    out = tmp_path / 'in_bag'
+    assert bag.main(['make', '--dataset', str(data_dir), '--frames', *names, '--storage', 'sqlite3',
+                     '--out', str(out), '--rate', '20', '--namespace', 'stereo']) == 0
+    msgs, conns = read_bag(out)
+    assert set(conns) == {f'/stereo/{t}' for t in ('left/image_rect', 'right/image_rect', 'left/camera_info',
+                                                    'right/camera_info', 'gt/disparity', 'gt/valid', 'gt/frame_name')}
+    for topic in ('/stereo/left/image_rect', '/stereo/right/camera_info'):
+        qos, = conns[topic].ext.offered_qos_profiles
+        assert (qos.reliability.name, qos.durability.name, qos.history.name, qos.depth) == \
+            ('BEST_EFFORT', 'VOLATILE', 'KEEP_LAST', 5)
+    stamps = [stamp_of(m) for _, m in msgs['/stereo/left/image_rect']]
+    assert np.diff(stamps).tolist() == [50_000_000]
+    assert [m.data for _, m in msgs['/stereo/gt/frame_name']] == names
+    for i, name in enumerate(names):
+        frame = load_frame(data_dir, name)
+        for side in ('left', 'right'):
+            timestamp, image = msgs[f'/stereo/{side}/image_rect'][i]
+            assert timestamp == stamp_of(image) == stamps[i] and image.header.frame_id == f'{side}_camera'
+            assert image.encoding == ('rgb8' if frame.left.ndim == 3 else 'mono8')
+            np.testing.assert_array_equal(image_to_array(image), getattr(frame, side))
+        gt = image_to_array(msgs['/stereo/gt/disparity'][i][1])
+        valid = image_to_array(msgs['/stereo/gt/valid'][i][1]) == 255
+        np.testing.assert_array_equal(valid, frame.valid & np.isfinite(frame.gt))
+        np.testing.assert_array_equal(gt[valid], frame.gt[valid])
+        assert (gt[~np.isfinite(frame.gt)] == 0).all()
+        info = msgs['/stereo/right/camera_info'][i][1]
+        assert (info.width, info.height) == frame.left.shape[1::-1]
+    kitti = load_frame(data_dir, names[0])
+    assert 700 < kitti.focal_px < 750 and 0.5 < kitti.baseline_m < 0.6  # the calibration was read
+    p_left, p_right = (msgs[f'/stereo/{s}/camera_info'][0][1].p for s in ('left', 'right'))
+    assert p_left[0] == p_right[0] == pytest.approx(kitti.focal_px) and p_left[3] == 0
+    assert p_right[3] == pytest.approx(-kitti.focal_px * kitti.baseline_m)
+    assert not msgs['/stereo/right/camera_info'][1][1].p.any()  # Middlebury v2: no calibration
+
+
+@pytest.fixture(scope='module')
+def round_trip(tmp_path_factory, params_file):
+    """(storage, dataset, frame names) -> (input bag, output bag, stdout of run): make, then run."""
+    cache = {}
+
+    def get(storage, dataset, names):
+        key = storage, dataset, tuple(names)
+        if key not in cache:
+            folder = tmp_path_factory.mktemp(storage)
+            bag_in, bag_out = folder / 'in', folder / 'out'
+            assert bag.main(['make', '--dataset', dataset, '--frames', *names, '--storage', storage,
+                             '--out', str(bag_in)]) == 0
+            stdout = io.StringIO()
+            with contextlib.redirect_stdout(stdout):
+                assert bag.main(['run', '--in', str(bag_in), '--out', str(bag_out), '--params', str(params_file),
+                                 '--png', str(folder / 'png'), '--storage', storage]) == 0
+            cache[key] = bag_in, bag_out, stdout.getvalue()
+        return cache[key]
+    return get
+
+
+@pytest.mark.parametrize('storage, dataset, names', [
+    ('sqlite3', 'motorcycle', ['motorcycle']),
+    ('mcap', 'motorcycle', ['motorcycle']),
+    ('mcap', 'shared', ['middlebury_v2/cones']),
+])
+def test_run_gives_the_node_outputs_and_scores(data_dir, round_trip, expected, storage, dataset, names):
+    dataset = str(data_dir) if dataset == 'shared' else dataset
+    bag_in, bag_out, stdout = round_trip(storage, dataset, names)
+    lines = stdout.splitlines()
+    inputs, _ = read_bag(bag_in)
+    outputs, conns = read_bag(bag_out)
+    assert set(inputs) < set(outputs) and {'/disparity', '/gcp_mask', '/confidence'} < set(outputs)
+    assert conns['/left/image_rect'].ext.offered_qos_profiles[0].reliability.name == 'BEST_EFFORT'
+    rows = {line.split()[-1]: line.split()[:-1] for line in lines}
+    for i, name in enumerate(names):
+        frame, result = expected(dataset, name)
+        left = inputs['/left/image_rect'][i][1]
+        disp_msg, gcp_msg, conf_msg = (outputs[t][i][1] for t in ('/disparity', '/gcp_mask', '/confidence'))
+        for msg in (disp_msg, gcp_msg, conf_msg):
+            assert stamp_of(msg) == stamp_of(left) and msg.header.frame_id == left.header.frame_id == 'left_camera'
+        want = np.where(np.isnan(result.disparity), -1, result.disparity)
+        np.testing.assert_array_equal(image_to_array(disp_msg.image), want)
+        assert disp_msg.max_disparity == PARAMS['max_disparity'] - 1 and disp_msg.f == 0
+        np.testing.assert_array_equal(image_to_array(gcp_msg), result.gcp.astype(np.uint8) * 255)
+        np.testing.assert_array_equal(image_to_array(conf_msg), result.cof_c)
+        assert 0 < result.gcp.mean() < 1  # neither empty nor full: the comparison can tell
+        rates = error_rates(result.disparity, frame.gt, frame.valid)
+        assert rows[name] == [f'{rates[k]:.2f}' for k in ('bad1', 'bad2', 'bad3', 'bad5', 'mae')]
+        stem = name.replace('/', '_')
+        assert {p.name for p in (bag_out.parent / 'png').iterdir()} == {f'{stem}_disparity.png', f'{stem}_gcp_mask.png'}
+    assert 'mean' in rows
+    for topic in inputs:  # the input is copied unchanged
+        assert [t for t, _ in outputs[topic]] == [t for t, _ in inputs[topic]]
+    assert sorted(p.name for p in bag_out.parent.iterdir()) == ['in', 'out', 'png']  # no staging left
+
+
+def write_bag(path, topics, storage='sqlite3'):
+    """A bag of {topic: (msgtype, [(timestamp, message)])}, written with rosbags directly."""
+    with Writer(path, version=9, storage_plugin=bag.StoragePlugin[storage.upper()]) as writer:
+        for topic, (msgtype, msgs) in topics.items():
+            conn = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
+            for timestamp, msg in msgs:
+                writer.write(conn, timestamp, TYPESTORE.serialize_cdr(msg, msgtype))
+
+
+def string_msg(text):
+    return TYPESTORE.types[bag.STRING](data=text)
+
+
+def image_msg(stamp, encoding, size=(80, 60)):
+    w, h = size
+    header = bag._header(stamp, 'left_camera')
+    return TYPESTORE.types[bag.IMAGE](header=header, height=h, width=w, encoding=encoding, is_bigendian=0,
+                                      step=w * 3, data=np.zeros(w * h * 3, np.uint8))
+
+
+def bad_bags(tmp_path):
+    """{case: path} of inputs `run` must refuse."""
+    bags = {}
+    for storage in ('sqlite3', 'mcap'):
+        good = tmp_path / f'good_{storage}'
+        assert bag.main(['make', '--dataset', 'motorcycle', '--storage', storage, '--out', str(good)]) == 0
+        cut = bags[f'truncated {storage}'] = tmp_path / f'truncated_{storage}'
+        shutil.copytree(good, cut)
+        data, = (p for p in cut.iterdir() if p.suffix in ('.db3', '.mcap'))
+        data.write_bytes(data.read_bytes()[:data.stat().st_size // 2])
+    bags['text file'] = tmp_path / 'notes.txt'
+    bags['text file'].write_text('not a bag\n')
+    bags['text file named .db3'] = tmp_path / 'notes.db3'
+    bags['text file named .db3'].write_text('not a bag\n')
+    bags['no image topics'] = tmp_path / 'chatter'
+    write_bag(bags['no image topics'], {'/chatter': (bag.STRING, [(1, string_msg('hello'))])})
+    bags['wrong image type'] = tmp_path / 'strings'
+    write_bag(bags['wrong image type'], {'/left/image_rect': (bag.STRING, [(1, string_msg('left'))]),
+                                         '/right/image_rect': (bag.STRING, [(1, string_msg('right'))])})
+    # The first pair is processed and written; the second fails: no half-written output either.
+    bags['bad second pair'] = tmp_path / 'bad_second'
+    write_bag(bags['bad second pair'], {
+        f'/{side}/image_rect': (bag.IMAGE, [(1, image_msg(1, 'rgb8')), (2, image_msg(2, 'yuv422'))])
+        for side in ('left', 'right')})
+    return bags
+
+
+REASONS = {
+    'truncated sqlite3': 'malformed', 'truncated mcap': 'not a readable rosbag2',
+    'text file': 'not a readable rosbag2', 'text file named .db3': 'not a database',
+    'no image topics': 'no /left/image_rect topic (topics: /chatter)',
+    'wrong image type': '/left/image_rect is std_msgs/msg/String, expected sensor_msgs/msg/Image',
+    'bad second pair': "unsupported encoding 'yuv422'",
+}
+
+
+def test_bad_input_bags_are_refused_without_output(tmp_path, params_file, capsys):
+    bags = bad_bags(tmp_path)
+    capsys.readouterr()
+    for case, path in bags.items():
+        out = tmp_path / f'out_{path.name}'
+        assert bag.main(['run', '--in', str(path), '--out', str(out), '--params', str(params_file)]) != 0, case
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert err.startswith('gcp-stereo-bag run: error: ') and REASONS[case] in err, (case, err)
+        assert err.endswith(f'{out} not written'), err
+        assert not out.exists(), case
+    assert [p.name for p in tmp_path.iterdir() if 'partial' in p.name] == []
+    # the real command line: exit status 1, one line on stderr, no traceback
+    proc = cli('run', '--in', bags['truncated mcap'], '--out', tmp_path / 'cli_out')
+    assert proc.returncode == 1 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert 'Traceback' not in proc.stderr and not (tmp_path / 'cli_out').exists()
+
+
+def test_existing_output_needs_force(tmp_path, capsys):
+    out = tmp_path / 'bag'
+    out.mkdir()
+    (out / 'keep').write_text('mine')
+    make = ['make', '--dataset', 'motorcycle', '--out', str(out)]
+    assert bag.main(make) == 1
+    assert 'exists; pass --force' in capsys.readouterr().err and (out / 'keep').read_text() == 'mine'
+    assert bag.main(make + ['--force']) == 0
+    assert not (out / 'keep').exists() and read_bag(out)[0]['/gt/frame_name'][0][1].data == 'motorcycle'
+
+
+# ---- play -------------------------------------------------------------------------------
+@pytest.fixture(scope='module')
+def ros():
+    import rclpy
+    rclpy.init()
+    yield rclpy
+    rclpy.shutdown()
+
+
+class Listener:
+    """A node recording (arrival time, message) per topic, spun in a thread."""
+
+    def __init__(self, rclpy, topics):
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        self.node = rclpy.create_node('test_bag_listener')
+        self.got = {topic: [] for topic in topics}
+        best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)  # matches any publisher
+        rosout = QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL)  # also what came before
+        for topic, cls in topics.items():
+            self.node.create_subscription(cls, topic, lambda m, t=topic: self.got[t].append((time.monotonic(), m)),
+                                          rosout if topic == '/rosout' else best_effort)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def wait(self, condition, what, timeout):
+        end = time.monotonic() + timeout
+        while not condition():
+            assert time.monotonic() < end, f'timed out waiting for {what}: got {({t: len(m) for t, m in self.got.items()})}'
+            time.sleep(0.02)
+
+    def close(self):
+        self.executor.shutdown()
+        self.thread.join()
+        self.node.destroy_node()
+
+
+def test_play_publishes_every_image_in_order(tmp_path, data_dir, ros):
+    from sensor_msgs.msg import CameraInfo, Image
+    names = ['middlebury_v2/cones', 'kitti2012/000070_10', 'middlebury2006/halfsize/Cloth3']  # rgb8, mono8, 1 MB
+    bag_path = tmp_path / 'bag'
+    assert bag.main(['make', '--dataset', str(data_dir), '--frames', *names, '--out', str(bag_path)]) == 0
+    recorded, _ = read_bag(bag_path)
+    listener = Listener(ros, {'/left/image_rect': Image, '/right/image_rect': Image, '/right/camera_info': CameraInfo})
+    try:
+        proc = cli('play', '--in', bag_path, '--rate', 0.5, '--wait-subscribers', 20)
+        assert proc.returncode == 0 and 'no subscriber' not in proc.stderr, proc.stderr
+        listener.wait(lambda: min(map(len, listener.got.values())) == len(names), 'every message', timeout=10)
+    finally:
+        listener.close()
+    for topic, got in listener.got.items():
+        want = [m for _, m in recorded[topic]]
+        assert [stamp_of(m) for _, m in got] == [stamp_of(m) for m in want], topic
+        assert [m.header.frame_id for _, m in got] == [m.header.frame_id for m in want]
+        if topic.endswith('image_rect'):
+            for (_, m), w in zip(got, want):
+                np.testing.assert_array_equal(image_to_array(m), image_to_array(w))
+        else:
+            assert [list(m.p) for _, m in got] == [w.p.tolist() for w in want]
+    arrivals = [t for t, _ in listener.got['/left/image_rect']]
+    assert arrivals[-1] - arrivals[0] > 0.3  # 2 periods of 0.1 s recorded, played at half speed: 0.4 s
+
+
+def test_play_into_the_node_gives_what_run_gives(data_dir, params_file, round_trip, ros):
+    from rcl_interfaces.msg import Log
+    from sensor_msgs.msg import Image
+    from stereo_msgs.msg import DisparityImage
+    bag_in, bag_out, _ = round_trip('mcap', str(data_dir), ['middlebury_v2/cones'])
+    offline, _ = read_bag(bag_out)
+    listener = Listener(ros, {'/disparity': DisparityImage, '/gcp_mask': Image, '/rosout': Log})
+    node = start_node(os.environ, params={'log_every_n_frames': 1}, params_file=params_file)
+    try:
+        # Play into the running node, as a user would (one still loading torch may not see the
+        # player's first messages: see bag.MATCH_SETTLE_SECONDS).
+        listener.wait(lambda: any(m.msg.startswith('ready') for _, m in listener.got['/rosout']), 'the node', 60)
+        proc = cli('play', '--in', bag_in, '--wait-subscribers', 10)
+        assert proc.returncode == 0 and 'no subscriber' not in proc.stderr, proc.stderr
+        listener.wait(lambda: listener.got['/disparity'] and listener.got['/gcp_mask'], 'the outputs', timeout=30)
+    finally:
+        listener.close()
+        node_exit = stop(node)
+    assert node_exit == 0
+    scalars = ('f', 't', 'min_disparity', 'max_disparity', 'delta_d')
+    roi = ('x_offset', 'y_offset', 'width', 'height')
+    for (_, live), (_, off) in zip(listener.got['/disparity'], offline['/disparity'], strict=True):
+        assert stamp_of(live) == stamp_of(off) and live.header.frame_id == off.header.frame_id
+        np.testing.assert_array_equal(image_to_array(live.image), image_to_array(off.image))
+        assert [getattr(live, k) for k in scalars] == [getattr(off, k) for k in scalars]
+        assert [getattr(live.valid_window, k) for k in roi] == [getattr(off.valid_window, k) for k in roi]
+    for (_, live), (_, off) in zip(listener.got['/gcp_mask'], offline['/gcp_mask'], strict=True):
+        np.testing.assert_array_equal(image_to_array(live), image_to_array(off))
