@@ -75,7 +75,7 @@ INPUTS = {f'{side}/{kind}': (msgtype, SENSOR_QOS) for kind, msgtype in (('image_
 GT = {'gt/frame_name': (STRING, DEFAULT_QOS), 'gt/disparity': (IMAGE, DEFAULT_QOS), 'gt/valid': (IMAGE, DEFAULT_QOS)}
 OUTPUTS = {'disparity': DISPARITY, 'gcp_mask': IMAGE, 'confidence': IMAGE}
 SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds')
-MATCH_SETTLE_SECONDS = 3.0  # see wait_for_subscribers
+MATCH_SETTLE_SECONDS = 1.0  # see wait_for_subscribers
 # A subscriber reads a shared-memory message from the publisher's segment: one that exits
 # right after publishing loses its last messages.
 LINGER_SECONDS = 1.0

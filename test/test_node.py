@@ -6,12 +6,11 @@ import cv2
 import numpy as np
 import pytest
 import rclpy
-from rcl_interfaces.msg import Log
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSDurabilityPolicy, QoSProfile, QoSReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image
 from skimage import data
 from stereo_msgs.msg import DisparityImage
@@ -34,17 +33,15 @@ def pair():
 class Harness:
     """The node under test and a peer node that publishes pairs and records what comes back."""
 
-    def __init__(self, overrides):
+    def __init__(self, overrides, capfd):
+        self.capfd, self.stderr = capfd, ''
         self.node = GcpStereoNode(parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
         self.peer = Node('test_peer')
         self.pub = {s: self.peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data)
                     for s in ('left', 'right')}
-        self.disparity, self.gcp, self.logs = [], [], []
+        self.disparity, self.gcp = [], []
         self.peer.create_subscription(DisparityImage, 'disparity', self.disparity.append, 10)
         self.peer.create_subscription(Image, 'gcp_mask', self.gcp.append, 10)
-        rosout = QoSProfile(depth=1000, reliability=QoSReliabilityPolicy.RELIABLE,
-                            durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
-        self.peer.create_subscription(Log, '/rosout', self.logs.append, rosout)
         self.set_client = self.peer.create_client(SetParameters, '/gcp_stereo_node/set_parameters')
         self.executor = MultiThreadedExecutor(num_threads=3)
         self.executor.add_node(self.node)
@@ -75,7 +72,9 @@ class Harness:
         return future.result().results
 
     def error_logs(self):
-        return [m.msg for m in self.logs if m.name == 'gcp_stereo_node' and m.level >= Log.ERROR]
+        """The node's error lines as the console shows them (rcutils writes them to stderr)."""
+        self.stderr += self.capfd.readouterr().err
+        return [line for line in self.stderr.splitlines() if line.startswith('[ERROR]') and '[gcp_stereo_node]' in line]
 
     def close(self):
         self.executor.shutdown()
@@ -109,9 +108,9 @@ def ros():
 
 
 @pytest.fixture
-def harness(ros, request):
+def harness(ros, request, capfd):
     overrides = {'max_disparity': MAX_DISP, 'theta': 0.9, **getattr(request, 'param', {})}
-    h = Harness(overrides)
+    h = Harness(overrides, capfd)
     h.overrides = overrides
     yield h
     h.close()
