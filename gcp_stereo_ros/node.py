@@ -33,6 +33,7 @@ from .params import BY_NAME, NODE_NAME, PARAMS, config_from_params, cost_default
 from .pipeline import StereoPipeline
 from .rosimage import image_to_array
 from .sync import PairSync
+from .viz import mask_png
 
 SIDES = ('left', 'right')
 STREAK_WARN = 10  # one side arriving this often in a row without its twin -> warning
@@ -206,17 +207,22 @@ class GcpStereoNode(Node):
         except Exception as err:  # bad input or weights: say why, skip the pair, keep serving
             self._error(f'skipping pair {topics["left"]} + {topics["right"]} at stamp {stamp} ns: {err}')
             return
-        header = left_msg.header
-        geom = messages.geometry(self._info['left'], self._info['right'])
-        self._pub_disp.publish(messages.disparity_message(_Types, header, result.disparity, pipeline.config,
-                                                          geom, _ros_data))
-        if result.gcp is not None:
-            self._pub_gcp.publish(messages.image_message(_Types, header, result.gcp.astype('uint8') * 255,
-                                                         'mono8', _ros_data))
-            if self._pub_conf.get_subscription_count() > 0:
-                self._pub_conf.publish(messages.image_message(_Types, header, result.cof_c, '32FC1', _ros_data))
+        try:
+            self._publish(left_msg.header, result, pipeline.config)
+        except Exception:
+            if self.context.ok():
+                raise
+            return  # shutting down (Ctrl-C) while this pair was in flight: nothing to send to
         self.stats['processed'] += 1
         self._log_progress(result.seconds)
+
+    def _publish(self, header, result, config):
+        geom = messages.geometry(self._info['left'], self._info['right'])
+        self._pub_disp.publish(messages.disparity_message(_Types, header, result.disparity, config, geom, _ros_data))
+        if result.gcp is not None:
+            self._pub_gcp.publish(messages.image_message(_Types, header, mask_png(result.gcp), 'mono8', _ros_data))
+            if self._pub_conf.get_subscription_count() > 0:
+                self._pub_conf.publish(messages.image_message(_Types, header, result.cof_c, '32FC1', _ros_data))
 
     def _log_progress(self, seconds):
         w = self._window

@@ -4,14 +4,13 @@ from pathlib import Path
 
 import pytest
 
+from gcp_stereo_ros.graph import private_env
+
 # Every test process gets its own DDS domain on loopback only, so parallel runs never
 # cross-talk; the shipped Fast DDS profile lets large images through shared memory.
-REPO = Path(__file__).resolve().parents[1]
-os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(REPO / 'config' / 'fastdds.xml')
+os.environ.update(private_env(1 + os.getpid() % 100))
 
-DATA = REPO.parent / 'shared' / 'data'
+DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 
 
 @pytest.fixture(scope='session')

@@ -259,10 +259,10 @@ def ros():
 class Listener:
     """A node recording (arrival time, message) per topic, spun in a thread."""
 
-    def __init__(self, rclpy, topics):
+    def __init__(self, rclpy, name, topics):
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-        self.node = rclpy.create_node('test_bag_listener')
+        self.node = rclpy.create_node(name)
         self.got = {topic: [] for topic in topics}
         best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)  # matches any publisher
         rosout = QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL)  # also what came before
@@ -277,8 +277,11 @@ class Listener:
     def wait(self, condition, what, timeout):
         end = time.monotonic() + timeout
         while not condition():
-            assert time.monotonic() < end, f'timed out waiting for {what}: got {({t: len(m) for t, m in self.got.items()})}'
+            assert time.monotonic() < end, f'timed out waiting for {what}: got {self.counts()}'
             time.sleep(0.02)
+
+    def counts(self):
+        return {topic: len(msgs) for topic, msgs in self.got.items()}
 
     def close(self):
         self.executor.shutdown()
@@ -292,11 +295,12 @@ def test_play_publishes_every_image_in_order(tmp_path, data_dir, ros):
     bag_path = tmp_path / 'bag'
     assert bag.main(['make', '--dataset', str(data_dir), '--frames', *names, '--out', str(bag_path)]) == 0
     recorded, _ = read_bag(bag_path)
-    listener = Listener(ros, {'/left/image_rect': Image, '/right/image_rect': Image, '/right/camera_info': CameraInfo})
+    listener = Listener(ros, 'test_bag_play_listener',
+                        {'/left/image_rect': Image, '/right/image_rect': Image, '/right/camera_info': CameraInfo})
     try:
         proc = cli('play', '--in', bag_path, '--rate', 0.5, '--wait-subscribers', 20)
         assert proc.returncode == 0 and 'no subscriber' not in proc.stderr, proc.stderr
-        listener.wait(lambda: min(map(len, listener.got.values())) == len(names), 'every message', timeout=10)
+        listener.wait(lambda: min(listener.counts().values()) == len(names), 'every message', timeout=10)
     finally:
         listener.close()
     for topic, got in listener.got.items():
@@ -318,11 +322,10 @@ def test_play_into_the_node_gives_what_run_gives(data_dir, params_file, round_tr
     from stereo_msgs.msg import DisparityImage
     bag_in, bag_out, _ = round_trip('mcap', str(data_dir), ['middlebury_v2/cones'])
     offline, _ = read_bag(bag_out)
-    listener = Listener(ros, {'/disparity': DisparityImage, '/gcp_mask': Image, '/rosout': Log})
-    node = start_node(os.environ, params={'log_every_n_frames': 1}, params_file=params_file)
+    listener = Listener(ros, 'test_bag_node_listener', {'/disparity': DisparityImage, '/gcp_mask': Image, '/rosout': Log})
+    node = start_node(os.environ, params_file=params_file)
     try:
-        # Play into the running node, as a user would (one still loading torch may not see the
-        # player's first messages: see bag.MATCH_SETTLE_SECONDS).
+        # into the running node, as a user would
         listener.wait(lambda: any(m.msg.startswith('ready') for _, m in listener.got['/rosout']), 'the node', 60)
         proc = cli('play', '--in', bag_in, '--wait-subscribers', 10)
         assert proc.returncode == 0 and 'no subscriber' not in proc.stderr, proc.stderr
