@@ -71,7 +71,8 @@ def config_from_params(values):
 
 
 def load_params_file(path):
-    """Parameter values from a ROS params YAML (`<node or /**>: ros__parameters: {...}`)."""
+    """Parameter values from a ROS params YAML (`<node or /**>: ros__parameters: {...}`),
+    without `qos_overrides`, which only rclpy reads."""
     path = Path(path)
     try:
         doc = yaml.safe_load(path.read_text())
@@ -79,5 +80,7 @@ def load_params_file(path):
         raise ValueError(f'cannot read parameters file {path}: {err}') from err
     for key in (NODE_NAME, '/' + NODE_NAME, '/**'):
         if isinstance(doc, dict) and isinstance(doc.get(key), dict) and 'ros__parameters' in doc[key]:
-            return dict(doc[key]['ros__parameters'])
+            values = dict(doc[key]['ros__parameters'])
+            values.pop('qos_overrides', None)  # rclpy's QoS settings, not pipeline parameters
+            return values
     raise ValueError(f'{path}: expected "{NODE_NAME}:" or "/**:" with "ros__parameters:" inside')

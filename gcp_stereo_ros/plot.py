@@ -89,7 +89,8 @@ def _plot_sweep(rows, grid, best, method, path):
     fig, axes = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4), squeeze=False)
     axes = axes[0]
     for frame in dict.fromkeys(r['frame'] for r in rows):
-        sel = [r for r in rows if r['frame'] == frame and all(r[k] == v for k, v in fixed.items())]
+        sel = [r for r in rows if r['frame'] == frame and all(r[k] == v for k, v in fixed.items())
+               and r.get('gcp_density', 1) > 0]  # no GCP at all (theta 1): every pixel C_hi, 100 % error
         xs = [r[x_name] for r in sel]
         for ax, key in zip(axes, keys):
             ax.plot(xs, [r[key] for r in sel], marker='.', label=frame)
@@ -120,7 +121,7 @@ def bars(args):
         for i, f in enumerate(frames):
             cut = 100 * (1 - err[gcp, f] / err[base, f]) if err[base, f] else 0.0
             ax.annotate(f'{-cut:+.0f}%', (i + 0.2, err[gcp, f]), ha='center', va='bottom', fontsize=8)
-        ax.set_xticks(x, [f.split('/')[-1] for f in frames], rotation=30, ha='right')
+        ax.set_xticks(x, ['/'.join(f.split('/')[-2:]) for f in frames], rotation=30, ha='right')
         ax.set_ylabel('error > 3 px (%)')
         ax.legend()
         ax.grid(axis='y', alpha=0.3)

@@ -322,7 +322,8 @@ def test_play_into_the_node_gives_what_run_gives(data_dir, params_file, round_tr
     from stereo_msgs.msg import DisparityImage
     bag_in, bag_out, _ = round_trip('mcap', str(data_dir), ['middlebury_v2/cones'])
     offline, _ = read_bag(bag_out)
-    listener = Listener(ros, 'test_bag_node_listener', {'/disparity': DisparityImage, '/gcp_mask': Image, '/rosout': Log})
+    listener = Listener(ros, 'test_bag_node_listener',
+                        {'/disparity': DisparityImage, '/gcp_mask': Image, '/rosout': Log})
     node = start_node(os.environ, params_file=params_file)
     try:
         # into the running node, as a user would
