@@ -87,10 +87,6 @@ def topic_name(namespace, name):
     return f'/{ns}/{name}' if ns else f'/{name}'
 
 
-def _stamp_ns(header):
-    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
-
-
 def _header(stamp_ns, frame_id):
     sec, nanosec = divmod(stamp_ns, 1_000_000_000)
     return TYPES.Header(stamp=TYPES.Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
@@ -249,7 +245,7 @@ class Runner:
         elif name.endswith('camera_info'):
             self.info[side] = msg
         else:
-            pair = self.sync.add(side, _stamp_ns(msg.header), msg)
+            pair = self.sync.add(side, messages.stamp_ns(msg.header), msg)
             if pair is not None:
                 self.process(*pair, timestamp)
 

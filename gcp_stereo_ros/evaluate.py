@@ -60,8 +60,7 @@ class Runner:
         self._pipeline = StereoPipeline(method_config('census', 16, paths, self.overrides))
 
     def pipeline(self, method, max_disp):
-        cost = 'census' if method == 'cnn' else method
-        self._pipeline = self._pipeline.with_config(method_config(cost, max_disp, self.paths, self.overrides))
+        self._pipeline = self._pipeline.with_config(method_config(method, max_disp, self.paths, self.overrides))
         return self._pipeline
 
     def run(self, method, left, right, max_disp):

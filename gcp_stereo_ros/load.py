@@ -15,6 +15,7 @@ from pathlib import Path
 
 from .datasets import list_frames, load_frame
 from .graph import private_env, start_node, stop
+from .messages import stamp_ns
 from .rosimage import array_to_image_fields
 
 
@@ -51,14 +52,15 @@ def main(argv=None):
     rclpy.init(args=[])  # our argv is not for rcl
     peer = Node('gcp_stereo_load')
     pubs = [peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data) for s in ('left', 'right')]
-    msgs = [Image(**{**array_to_image_fields(im, 'rgb8' if im.ndim == 3 else 'mono8')}) for im in (frame.left, frame.right)]
-    for m in msgs:
-        m.data = bytes(m.data)
+    msgs = []
+    for image in (frame.left, frame.right):
+        fields = array_to_image_fields(image, 'rgb8' if image.ndim == 3 else 'mono8')
+        msgs.append(Image(**{**fields, 'data': fields['data'].tobytes()}))
     sent, latency = {}, []
     lock = threading.Lock()
 
     def on_disparity(msg):
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = stamp_ns(msg.header)
         with lock:
             if stamp in sent:
                 latency.append(time.monotonic() - sent[stamp])

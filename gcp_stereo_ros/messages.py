@@ -11,6 +11,11 @@ import numpy as np
 from .rosimage import array_to_image_fields
 
 
+def stamp_ns(header):
+    """A std_msgs/Header's stamp in integer nanoseconds (the sync and bag key)."""
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
 @dataclass(frozen=True)
 class Geometry:
     f: float = 0.0  # focal length in pixels (0 = unknown)

@@ -53,10 +53,6 @@ def _ros_data(buffer):
     return out
 
 
-def _stamp_ns(header):
-    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
-
-
 def _descriptor(param):
     desc = ParameterDescriptor(description=param.description)
     if param.range is not None:
@@ -163,7 +159,7 @@ class GcpStereoNode(Node):
     def _on_image(self, side, msg):
         self.stats['received'] += 1
         self._window['received'] += 1
-        pair = self._sync.add(side, _stamp_ns(msg.header), msg)
+        pair = self._sync.add(side, messages.stamp_ns(msg.header), msg)
         if self._sync.unmatched_streak(side) == STREAK_WARN:
             other = 'right' if side == 'left' else 'left'
             self.get_logger().warn(
