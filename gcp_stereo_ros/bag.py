@@ -46,10 +46,10 @@ from tqdm import tqdm
 from . import messages
 from .datasets import list_frames, load_frames
 from .metrics import THRESHOLDS, error_rates
-from .params import BY_NAME, config_from_params, load_params_file
+from .params import config_from_params, load_params_file, make_sync
 from .pipeline import StereoPipeline
 from .rosimage import image_to_array
-from .sync import SIDES, PairSync
+from .sync import SIDES
 from .viz import colorize, mask_png, save_png
 
 PROG = 'gcp-stereo-bag'
@@ -74,7 +74,6 @@ INPUTS = {f'{side}/{kind}': (msgtype, SENSOR_QOS) for kind, msgtype in (('image_
           for side in SIDES}
 GT = {'gt/frame_name': (STRING, DEFAULT_QOS), 'gt/disparity': (IMAGE, DEFAULT_QOS), 'gt/valid': (IMAGE, DEFAULT_QOS)}
 OUTPUTS = {'disparity': DISPARITY, 'gcp_mask': IMAGE, 'confidence': IMAGE}
-SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds')
 MATCH_SETTLE_SECONDS = 3.0  # see wait_for_subscribers
 # Before exiting: a player exiting right after publishing lost its last best-effort
 # messages in 2 of 20 plays, in none of 45 after lingering this long.
@@ -284,7 +283,7 @@ def run(args):
     pipeline = StereoPipeline(config_from_params(values))
     if pipeline.config.use_gcp:
         pipeline.net  # a missing weights file fails here, before any output
-    sync = PairSync(*(values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS))
+    sync = make_sync(values)
     with open_bag(args.inp) as reader, output_bag(args.out, args.storage, args.force) as writer:
         names = check_topics(reader, args.inp, args.namespace)
         runner = Runner(pipeline, sync, writer, args.namespace, args.png)

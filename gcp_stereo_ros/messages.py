@@ -37,7 +37,7 @@ def geometry(left_info, right_info):
 def disparity_message(types, header, disp, config, geom, data=lambda a: a):
     """stereo_msgs/DisparityImage for a float32 disparity (NaN = invalid, published as
     min_disparity - 1 as the message definition asks). `data` converts the uint8 buffer to
-    what the message class wants (bytes for rclpy, the numpy array for rosbags)."""
+    what the message class wants (array.array('B') for rclpy, the numpy array for rosbags)."""
     border = config.window // 2
     h, w = disp.shape
     out = disp - np.float32(geom.cx_offset) if geom.cx_offset else disp.copy()

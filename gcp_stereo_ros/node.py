@@ -29,10 +29,10 @@ from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from stereo_msgs.msg import DisparityImage
 
 from . import messages
-from .params import BY_NAME, NODE_NAME, PARAMS, config_from_params, cost_defaults
+from .cost import COSTS
+from .params import BY_NAME, NODE_NAME, PARAMS, SYNC_PARAMS, config_from_params, cost_defaults, make_sync
 from .pipeline import StereoPipeline
 from .rosimage import image_to_array
-from .sync import PairSync
 from .viz import mask_png
 
 SIDES = ('left', 'right')
@@ -70,12 +70,12 @@ class GcpStereoNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         # Cost-dependent parameters default to the chosen cost's values; overrides win.
         cost = self.declare_parameter('cost', BY_NAME['cost'].default, _descriptor(BY_NAME['cost'])).value
-        defaults = cost_defaults(cost) if cost in ('census', 'sad') else {}
+        defaults = cost_defaults(cost) if cost in COSTS else {}
         for p in (p for p in PARAMS if p.name != 'cost'):
             self.declare_parameter(p.name, defaults.get(p.name, p.default), _descriptor(p))
         self._values = {p.name: self.get_parameter(p.name).value for p in PARAMS}
         self._pipeline = StereoPipeline(self._config(self._values))
-        self._sync = self._make_sync(self._values)
+        self._sync = make_sync(self._values)
         self._candidate = None
         self.add_pre_set_parameters_callback(self._complete_cost_switch)
         self.add_on_set_parameters_callback(self._validate)
@@ -113,16 +113,11 @@ class GcpStereoNode(Node):
     def _config(values):
         return config_from_params({n: v for n, v in values.items() if BY_NAME[n].field})
 
-    @staticmethod
-    def _make_sync(values):
-        return PairSync(values['queue_size'], values['approximate_sync'],
-                        values['approximate_sync_tolerance_seconds'])
-
     def _complete_cost_switch(self, params):
         """A cost switch brings that cost's theta, P1, P2, c_hi, c_low unless set alongside."""
         names = {p.name for p in params}
         for p in params:
-            if p.name == 'cost' and p.value != self._values['cost'] and p.value in ('census', 'sad'):
+            if p.name == 'cost' and p.value != self._values['cost'] and p.value in COSTS:
                 params += [Parameter(n, value=v) for n, v in cost_defaults(p.value).items() if n not in names]
         return params
 
@@ -134,7 +129,7 @@ class GcpStereoNode(Node):
         values = {**self._values, **changes}
         try:
             config = self._config(values)
-            self._make_sync(values)
+            make_sync(values)
             pipeline = self._pipeline.with_config(config)
             if config.use_gcp:
                 pipeline.net  # a missing or corrupt weights file is refused here, with its path
@@ -147,11 +142,10 @@ class GcpStereoNode(Node):
         if self._candidate is None:
             return
         values, pipeline = self._candidate
-        sync_changed = any(values[n] != self._values[n]
-                           for n in ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds'))
+        sync_changed = any(values[n] != self._values[n] for n in SYNC_PARAMS)
         self._values, self._pipeline = values, pipeline
         if sync_changed:
-            self._sync = self._make_sync(values)
+            self._sync = make_sync(values)
         self.get_logger().info('parameters: ' + ', '.join(f'{p.name}={p.value!r}' for p in params
                                                          if p.name in BY_NAME))
 

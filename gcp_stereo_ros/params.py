@@ -9,6 +9,7 @@ from pathlib import Path
 import yaml
 
 from .pipeline import COST_DEFAULTS, StereoConfig
+from .sync import PairSync
 
 NODE_NAME = 'gcp_stereo_node'
 
@@ -51,6 +52,7 @@ PARAMS = (
 )
 BY_NAME = {p.name: p for p in PARAMS}
 COST_PARAMS = {'theta': 'theta', 'P1': 'p1', 'P2': 'p2', 'c_hi': 'c_hi', 'c_low': 'c_low'}
+SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds')
 
 
 def cost_defaults(cost):
@@ -68,6 +70,11 @@ def config_from_params(values):
         raise ValueError(f'unknown parameter(s) {sorted(unknown)}; known: {sorted(BY_NAME)}')
     fields = {BY_NAME[n].field: v for n, v in values.items() if BY_NAME[n].field and n != 'cost'}
     return StereoConfig.for_cost(values.get('cost', _D.cost), **fields)
+
+
+def make_sync(values):
+    """The PairSync that ROS-named parameter values ask for (defaults for missing ones)."""
+    return PairSync(*(values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS))
 
 
 def load_params_file(path):
