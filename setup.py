@@ -33,6 +33,8 @@ setup(
             'gcp-stereo-train = gcp_stereo_ros.train:main',
             'gcp-stereo-plot = gcp_stereo_ros.plot:main',
             'gcp-stereo-bag = gcp_stereo_ros.bag:main',
+            'gcp-stereo-load = gcp_stereo_ros.load:main',
+            'gcp-stereo-demo = gcp_stereo_ros.demo:main',
         ],
     },
 )

@@ -14,11 +14,9 @@ from pathlib import Path
 
 import cv2
 
-from .cnn import best_match, image_descriptors
 from .cost import cost_volume
 from .datasets import list_frames, load_frame
 from .evaluate import opencv_sgbm
-from .gcp import refine
 from .images import gray_pair
 from .pipeline import StereoConfig, StereoPipeline
 from .sgm import aggregate
@@ -36,6 +34,17 @@ def median_seconds(fn, repeat):
     return statistics.median(times)
 
 
+def median_pipeline(pipeline, left, right, repeat):
+    """Median end-to-end seconds of `pipeline` on the pair, and the median of each stage."""
+    pipeline(left, right)
+    total, stages = [], []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        stages.append(pipeline(left, right).seconds)
+        total.append(time.perf_counter() - t)
+    return statistics.median(total), {k: statistics.median(s[k] for s in stages) for k in stages[0]}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -51,26 +60,22 @@ def main(argv=None):
     nd = args.max_disp
     print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, repeat {args.repeat}')
     census = cost_volume(left, right, nd, 'census')
-    pipeline = StereoPipeline(StereoConfig.for_cost('census', max_disp=nd))
-    pipeline_bf16 = pipeline.with_config(pipeline.config.replace(bf16=True))
-    descriptors = image_descriptors(pipeline.net, left, right)
-    cof_c, cof_d = best_match(*descriptors, nd)
-    gcp = cof_c > pipeline.config.theta
     stages = {
         'opencv_sgbm_hh': lambda: opencv_sgbm(left, right, nd),
         'census': lambda: cost_volume(left, right, nd, 'census'),
         'sad': lambda: cost_volume(left, right, nd, 'sad'),
         'sgm8': lambda: aggregate(census, 4, 128, 8),
         'sgm16': lambda: aggregate(census, 4, 128, 16),
-        'cnn': lambda: image_descriptors(pipeline.net, left, right),
-        'cnn_bf16': lambda: image_descriptors(pipeline.net, left, right, bf16=True),
-        'confidence': lambda: best_match(*descriptors, nd),
-        'refine': lambda: refine(census, gcp, cof_d, 200.0, 1.3),  # idempotent: in place
     }
     seconds = {name: median_seconds(fn, args.repeat) for name, fn in stages.items()}
-    del census, descriptors, stages  # the whole pipeline runs with only its own arrays
-    seconds['pipeline'] = median_seconds(lambda: pipeline(left, right), args.repeat)
-    seconds['pipeline_bf16'] = median_seconds(lambda: pipeline_bf16(left, right), args.repeat)
+    del census, stages  # the whole pipeline runs with only its own arrays
+    pipeline = StereoPipeline(StereoConfig.for_cost('census', max_disp=nd))
+    breakdown = {}
+    for suffix, bf16 in (('', False), ('_bf16', True)):
+        pipe = pipeline.with_config(pipeline.config.replace(bf16=bf16))
+        seconds['pipeline' + suffix], breakdown['pipeline' + suffix] = median_pipeline(pipe, left, right, args.repeat)
+        for stage in ('cnn', 'confidence', 'refine'):
+            seconds[stage + suffix] = breakdown['pipeline' + suffix][stage]
     peer = seconds['opencv_sgbm_hh']
     ratios = {name: s / peer for name, s in seconds.items() if name != 'opencv_sgbm_hh'}
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -78,9 +83,9 @@ def main(argv=None):
     for name, s in seconds.items():
         print(f'{name:<16}{s:9.3f}{ratios.get(name, 1.0):13.2f}')
     print(f'peak RSS {peak:.0f} MB')
-    for name, pipe in (('pipeline', pipeline), ('pipeline_bf16', pipeline_bf16)):
-        print(f'{name} = Census+GCP+SGM (16 paths) end to end; its stages:',
-              ', '.join(f'{k} {v:.3f} s' for k, v in pipe(left, right).seconds.items()))
+    for name, stage_seconds in breakdown.items():
+        print(f'{name} = Census+GCP+SGM (16 paths) end to end; median of its stages:',
+              ', '.join(f'{k} {v:.3f} s' for k, v in stage_seconds.items()))
     if args.json:
         args.json.write_text(json.dumps({'stages': seconds, 'ratios': ratios, 'peak_rss_mb': peak}, indent=1))
 

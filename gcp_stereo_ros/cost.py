@@ -138,16 +138,31 @@ def _sad_cost(left, right, ndisp, rad, invalid, out):
                     out[y, x, d] = invalid
 
 
-def cost_volume(left, right, max_disp, cost='census', window=9):
+def output_array(out, shape):
+    """`out` if it is a C-contiguous float32 array of `shape`, a new one if `out` is None.
+
+    Streaming callers pass the array of the previous frame back: a fresh (H, W, D) volume
+    costs a page fault per 4 KiB on first touch (a KITTI volume is 238 MB).
+    """
+    if out is None:
+        return np.empty(shape, np.float32)
+    if out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f'out must be a C-contiguous float32 array of shape {shape}, '
+                         f'got {out.dtype} {out.shape}')
+    return out
+
+
+def cost_volume(left, right, max_disp, cost='census', window=9, out=None):
     """Matching cost volume (H, W, max_disp) float32 of a rectified pair (see module doc).
 
-    `left`, `right`: same-size gray or RGB arrays (uint8, uint16 or float).
+    `left`, `right`: same-size gray or RGB arrays (uint8, uint16 or float). `out`: an array
+    to write the volume into (see `output_array`).
     """
     check_window(cost, window)
     lg, rg = gray_pair(left, right)
     if not (isinstance(max_disp, (int, np.integer)) and 1 <= max_disp <= lg.shape[1]):
         raise ValueError(f'max_disp must be an integer in [1, image width {lg.shape[1]}], got {max_disp!r}')
-    out = np.empty(lg.shape + (int(max_disp),), np.float32)
+    out = output_array(out, lg.shape + (int(max_disp),))
     invalid = np.float32(max_cost(cost, window))
     if cost == 'census':
         _census_cost(census_transform(lg, window), census_transform(rg, window), int(max_disp), window // 2, invalid, out)

@@ -83,16 +83,28 @@ class StereoResult:
 
 
 class StereoPipeline:
-    """Runs a StereoConfig on image pairs; the CNN is loaded once, on first use."""
+    """Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
 
-    def __init__(self, config=None, net=None):
+    The cost volume and the summed path costs are written into two arrays kept from the
+    previous call of the same size (two fresh (H, W, D) float32 arrays per frame would cost
+    a page fault per 4 KiB). So one pipeline serves one thread at a time.
+    """
+
+    def __init__(self, config=None, net=None, _workspace=None):
         self.config = (config or StereoConfig()).validate()
         self._net = net
+        self._workspace = {} if _workspace is None else _workspace
 
     def with_config(self, config):
-        """A pipeline for `config` that keeps this one's CNN when weights and device match."""
+        """A pipeline for `config` that keeps this one's CNN when weights and device match,
+        and its arrays (the two pipelines must then not run at the same time)."""
         same = (config.weights, config.device) == (self.config.weights, self.config.device)
-        return StereoPipeline(config, self._net if same else None)
+        return StereoPipeline(config, self._net if same else None, self._workspace)
+
+    def _array(self, name, shape):
+        """The kept array `name` if it has `shape`, else None (the callee allocates; kept then)."""
+        a = self._workspace.get(name)
+        return a if a is not None and a.shape == shape else None
 
     @property
     def net(self):
@@ -118,22 +130,20 @@ class StereoPipeline:
         left, right = gray_pair(left, right)
         gcp = cof_c = cof_d = None
         if net is not None:
-            from .cnn import best_match, image_descriptors
-            descriptors = image_descriptors(net, left, right, cfg.device, cfg.bf16)
-            lap('cnn')
-            confidence = best_match(*descriptors, cfg.max_disp)
-            del descriptors  # 2 x (H, W, 64) float32: not held through cost and SGM
-            lap('confidence')
+            from .cnn import confidence as cnn_confidence
+            confidence = cnn_confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16, seconds=seconds)
+            t = time.perf_counter()
         if cfg.use_gcp:
             cof_c, cof_d = confidence
-        volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window)
+        shape = left.shape + (cfg.max_disp,)
+        volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window, self._array('cost', shape))
         lap('cost')
         if cfg.use_gcp:
             gcp = cof_c > cfg.theta
             refine(volume, gcp, cof_d, cfg.c_hi, cfg.c_low)
             lap('refine')
-        total = aggregate(volume, cfg.p1, cfg.p2, cfg.paths)
-        del volume
+        total = aggregate(volume, cfg.p1, cfg.p2, cfg.paths, self._array('total', shape))
+        self._workspace.update(cost=volume, total=total)
         lap('sgm')
         disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)
         lap('wta')

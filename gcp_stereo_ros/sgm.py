@@ -16,6 +16,8 @@ import cv2
 import numpy as np
 from numba import njit, prange
 
+from .cost import output_array
+
 PATHS = (4, 8, 16)
 
 
@@ -33,21 +35,30 @@ def directions(paths):
 
 
 @njit(inline='always', fastmath=True)
+def _min_bits(v):
+    """min(v) of a non-negative float32 array, as its int32 bit pattern. Such floats order
+    like their bits, and an integer min reduction vectorizes where a float one does not."""
+    bits = v.view(np.int32)
+    m = bits[0]
+    for d in range(1, bits.shape[0]):
+        b = bits[d]
+        m = b if b < m else m
+    return m
+
+
+@njit(inline='always', fastmath=True)
 def _path_step(c, prev, prev_min, p1, p2, out):
-    """out = L_r(p, .) from c = C(p, .) and prev = L_r(p - r, .); returns min(out)."""
+    """out = L_r(p, .) from c = C(p, .) and prev = L_r(p - r, .); returns min(out) as int32 bits."""
     nd = c.shape[0]
     jump = prev_min + p2
     if nd == 1:
         out[0] = c[0] + min(prev[0], jump) - prev_min
-        return out[0]
-    out[0] = c[0] + min(min(prev[0], prev[1] + p1), jump) - prev_min
-    for d in range(1, nd - 1):
-        out[d] = c[d] + min(min(prev[d], min(prev[d - 1], prev[d + 1]) + p1), jump) - prev_min
-    out[nd - 1] = c[nd - 1] + min(min(prev[nd - 1], prev[nd - 2] + p1), jump) - prev_min
-    m = out[0]
-    for d in range(1, nd):
-        m = min(m, out[d])
-    return m
+    else:
+        out[0] = c[0] + min(min(prev[0], prev[1] + p1), jump) - prev_min
+        for d in range(1, nd - 1):
+            out[d] = c[d] + min(min(prev[d], min(prev[d - 1], prev[d + 1]) + p1), jump) - prev_min
+        out[nd - 1] = c[nd - 1] + min(min(prev[nd - 1], prev[nd - 2] + p1), jump) - prev_min
+    return _min_bits(out)
 
 
 @njit(parallel=True, cache=True, fastmath=True)
@@ -57,20 +68,24 @@ def _horizontal(cost, p1, p2, total):
     for y in prange(h):
         a = np.empty(nd, np.float32)
         b = np.empty(nd, np.float32)
-        total[y, 0] = cost[y, 0]
-        m = cost[y, 0].min()
-        a[:] = cost[y, 0]
-        for x in range(1, w):
-            prev, cur = (a, b) if x % 2 == 1 else (b, a)
-            m = _path_step(cost[y, x], prev, m, p1, p2, cur)
-            total[y, x] = cur
-        a[:] = cost[y, w - 1]
-        total[y, w - 1] += a
-        m = a.min()
-        for x in range(w - 2, -1, -1):
-            prev, cur = (a, b) if (w - 1 - x) % 2 == 1 else (b, a)
-            m = _path_step(cost[y, x], prev, m, p1, p2, cur)
-            total[y, x] += cur
+        m = np.empty(1, np.int32)  # min of the last path step; read as float32 through mf
+        mf = m.view(np.float32)
+        for backward in (False, True):
+            x0 = w - 1 if backward else 0
+            a[:] = cost[y, x0]
+            m[0] = _min_bits(a)
+            if backward:
+                total[y, x0] += a
+            else:
+                total[y, x0] = a
+            for i in range(1, w):
+                x = w - 1 - i if backward else i
+                prev, cur = (a, b) if i % 2 == 1 else (b, a)
+                m[0] = _path_step(cost[y, x], prev, mf[0], p1, p2, cur)
+                if backward:
+                    total[y, x] += cur
+                else:
+                    total[y, x] = cur
 
 
 @njit(parallel=True, cache=True, fastmath=True)
@@ -78,7 +93,8 @@ def _sweep(cost, p1, p2, total, dirs, down):
     """total += L_r for each r in dirs; dy > 0 counts rows back in sweep order."""
     h, w, nd = cost.shape
     buf = np.empty((dirs.shape[0], 3, w, nd), np.float32)
-    mins = np.empty((dirs.shape[0], 3, w), np.float32)
+    mins = np.empty((dirs.shape[0], 3, w), np.int32)  # min_d of each buf row, as float32 bits
+    min_values = mins.view(np.float32)
     for i in range(h):
         y = i if down else h - 1 - i
         slot = i % 3
@@ -91,24 +107,46 @@ def _sweep(cost, p1, p2, total, dirs, down):
                 cur = buf[k, slot, x]
                 if back >= 0 and 0 <= px < w:
                     ps = back % 3
-                    mins[k, slot, x] = _path_step(c, buf[k, ps, px], mins[k, ps, px], p1, p2, cur)
+                    mins[k, slot, x] = _path_step(c, buf[k, ps, px], min_values[k, ps, px], p1, p2, cur)
                 else:
                     cur[:] = c
-                    mins[k, slot, x] = c.min()
+                    mins[k, slot, x] = _min_bits(c)
                 for d in range(nd):
                     acc[d] += cur[d]
 
 
-def aggregate(cost, p1, p2, paths=16):
-    """Summed path costs S (H, W, D) float32 of a cost volume (see module doc)."""
+@njit(parallel=True, cache=True)
+def _invalid_cells(cost):
+    """Number of cells that are negative, NaN or infinite."""
+    flat = cost.reshape(-1)
+    n = 0
+    for i in prange(flat.shape[0]):
+        v = flat[i]
+        if not (0 <= v < np.inf):
+            n += 1
+    return n
+
+
+def aggregate(cost, p1, p2, paths=16, out=None):
+    """Summed path costs S (H, W, D) float32 of a cost volume (see module doc).
+
+    Costs must be finite and >= 0 (every matching cost here is); ValueError otherwise.
+    `out`: an array to write S into (see `cost.output_array`), not `cost` itself.
+    """
     cost = np.ascontiguousarray(cost, dtype=np.float32)
     if cost.ndim != 3 or 0 in cost.shape:
         raise ValueError(f'cost volume must have shape (H, W, D) with no empty axis, got {cost.shape}')
+    bad = _invalid_cells(cost)
+    if bad:
+        raise ValueError(f'cost volume has {bad} cells that are negative, NaN or infinite; '
+                         'SGM needs finite costs >= 0')
     p1, p2 = float(p1), float(p2)
     if not (0 <= p1 <= p2):
         raise ValueError(f'SGM penalties need 0 <= P1 <= P2, got P1={p1}, P2={p2}')
     dirs = directions(paths)
-    total = np.empty_like(cost)
+    total = output_array(out, cost.shape)
+    if np.shares_memory(total, cost):
+        raise ValueError('out must not overlap the cost volume')
     _horizontal(cost, np.float32(p1), np.float32(p2), total)
     down = np.array([d for d in dirs if d[1] > 0], np.int64)
     # Seen from a bottom-up sweep, (dx, dy) from below is (-dx, dy) from above.

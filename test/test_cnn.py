@@ -4,9 +4,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from gcp_stereo_ros import train
-from gcp_stereo_ros.cnn import DEFAULT_WEIGHTS, GcpNet, confidence, load_net
+from gcp_stereo_ros.cnn import DEFAULT_WEIGHTS, STRIP_ROWS, GcpNet, confidence, load_net
 from gcp_stereo_ros.datasets import load_frame
 from gcp_stereo_ros.gcp import gcp_quality
 from gcp_stereo_ros.images import gray_pair, standardize
@@ -32,7 +33,8 @@ def tsukuba(data_dir):
 
 
 def test_confidence_streaming_equals_volume(net, tsukuba):
-    left, right = tsukuba.left[100:180], tsukuba.right[100:180]
+    left, right = tsukuba.left[100:180], tsukuba.right[100:180]  # two strips
+    assert STRIP_ROWS < 80
     cof_c, cof_d, vol = confidence(net, left, right, 24, volume=True)
     h, w = left.shape[:2]
     assert cof_c.shape == cof_d.shape == (h, w) and vol.shape == (h, w, 24)
@@ -44,8 +46,9 @@ def test_confidence_streaming_equals_volume(net, tsukuba):
     assert (vol[:, x - d < 0] == 0).all() and (cof_d <= np.arange(w)).all()
     # the volume itself against torch: inner products of the per-image descriptors
     lg, rg = gray_pair(left, right)
-    with torch.no_grad():
-        fl, fr = (net.descriptors(torch.from_numpy(standardize(g))).numpy() for g in (lg, rg))
+    with torch.no_grad():  # whole-image descriptors, where `confidence` works in strips of rows
+        fl, fr = (net.features(F.pad(torch.from_numpy(standardize(g))[None, None], (4,) * 4, mode='replicate'))[0].numpy()
+                  for g in (lg, rg))
     for k in (0, 5, 23):
         ref = (fl[:, :, k:] * fr[:, :, :w - k]).sum(axis=0)
         np.testing.assert_allclose(vol[:, k:, k], ref, atol=1e-5)

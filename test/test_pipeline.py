@@ -35,6 +35,20 @@ def test_census_sgm_on_motorcycle(motorcycle, census_baseline):
     assert error_rates(opencv_sgbm(left, right, 64), gt)['bad3'] > census_baseline + 3
 
 
+def test_arrays_kept_between_frames_leave_no_trace(motorcycle):
+    left, right, _ = motorcycle
+    crops = [(slice(0, 200), slice(0, 300)), (slice(250, 450), slice(300, 600))]
+    for cost in ('census', 'sad'):
+        pipe = StereoPipeline(StereoConfig.for_cost(cost, use_gcp=False, max_disp=32))
+        first = pipe(left[crops[0]], right[crops[0]])
+        kept = pipe._workspace['total']
+        second = pipe(left[crops[1]], right[crops[1]])
+        assert pipe._workspace['total'] is kept
+        fresh = StereoPipeline(pipe.config)(left[crops[1]], right[crops[1]])
+        np.testing.assert_array_equal(second.disparity, fresh.disparity)
+        assert not np.array_equal(first.disparity, second.disparity)
+
+
 def test_refinement_rule_on_hand_made_volume():
     cost = np.arange(2 * 3 * 4, dtype=np.float32).reshape(2, 3, 4)
     gcp = np.array([[True, False, True], [False, False, True]])

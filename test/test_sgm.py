@@ -58,3 +58,11 @@ def test_paths_and_penalties_validated():
         aggregate(cost, 5, 2)
     with pytest.raises(ValueError, match='shape'):
         aggregate(np.zeros((4, 4), np.float32), 1, 2)
+
+
+@pytest.mark.parametrize('bad', [-1.0, np.nan, np.inf])
+def test_negative_or_non_finite_costs_rejected(bad):
+    cost = np.zeros((4, 5, 3), np.float32)
+    cost[2, 3, 1] = bad
+    with pytest.raises(ValueError, match='1 cells that are negative, NaN or infinite'):
+        aggregate(cost, 1, 2)
