@@ -162,10 +162,11 @@ def _wta(total, subpixel, lr_tol, out, consistent):
     for y in prange(h):
         for x in range(w):
             s = total[y, x]
+            m = _min_bits(s)  # S >= 0: the first d whose bits equal the minimum's
+            bits = s.view(np.int32)
             best = 0
-            for d in range(1, nd):
-                if s[d] < s[best]:
-                    best = d
+            while bits[best] != m:
+                best += 1
             disp = np.float32(best)
             if subpixel and 0 < best < nd - 1:
                 curv = s[best - 1] - 2 * s[best] + s[best + 1]
@@ -183,13 +184,18 @@ def _wta(total, subpixel, lr_tol, out, consistent):
 
 
 def disparity(total, subpixel=False, lr_check=False, median=False):
-    """Winner-takes-all disparity (H, W) float32 from summed path costs S.
+    """Winner-takes-all disparity (H, W) float32 from summed path costs S (finite, >= 0, as
+    `aggregate` returns them; ValueError otherwise), first minimum on ties.
 
     Options (all off by default; the paper uses none): `subpixel` parabola fit through the
     minimum and its neighbours; `median` 3x3 median filter; `lr_check` marks NaN where the
     right-view winner at x - d differs from d by more than 1 px (applied after the median,
     so invalid pixels stay NaN).
     """
+    total = np.ascontiguousarray(total, dtype=np.float32)
+    bad = _invalid_cells(total)
+    if bad:
+        raise ValueError(f'summed path costs have {bad} cells that are negative, NaN or infinite')
     out = np.empty(total.shape[:2], np.float32)
     consistent = np.ones(total.shape[:2], np.bool_)
     _wta(total, subpixel, 1 if lr_check else -1, out, consistent)

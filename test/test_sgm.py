@@ -66,3 +66,5 @@ def test_negative_or_non_finite_costs_rejected(bad):
     cost[2, 3, 1] = bad
     with pytest.raises(ValueError, match='1 cells that are negative, NaN or infinite'):
         aggregate(cost, 1, 2)
+    with pytest.raises(ValueError, match='1 cells that are negative, NaN or infinite'):
+        disparity(cost)
