@@ -36,13 +36,10 @@ def median_seconds(fn, repeat):
 
 def median_pipeline(pipeline, left, right, repeat):
     """Median end-to-end seconds of `pipeline` on the pair, and the median of each stage."""
-    pipeline(left, right)
-    total, stages = [], []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        stages.append(pipeline(left, right).seconds)
-        total.append(time.perf_counter() - t)
-    return statistics.median(total), {k: statistics.median(s[k] for s in stages) for k in stages[0]}
+    stages = []
+    total = median_seconds(lambda: stages.append(pipeline(left, right).seconds), repeat)
+    timed = stages[1:]  # not the warm-up
+    return total, {k: statistics.median(s[k] for s in timed) for k in timed[0]}
 
 
 def main(argv=None):

@@ -164,7 +164,9 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     cof_c = np.empty((h, w), np.float32)
     cof_d = np.empty((h, w), np.int32)
     vol = np.empty((h, w, max_disp), np.float32) if volume else None
-    times = {'cnn': 0.0, 'confidence': 0.0}
+    seconds = {} if seconds is None else seconds
+    for stage in ('cnn', 'confidence'):
+        seconds.setdefault(stage, 0.0)
     for y0 in range(0, h, STRIP_ROWS):
         y1 = min(y0 + STRIP_ROWS, h)
         t = time.perf_counter()
@@ -179,9 +181,6 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
         _best_match(bits, shift, max_disp, cof_c[y0:y1], cof_d[y0:y1])
         if volume:
             _volume(bits, shift, vol[y0:y1])
-        times['cnn'] += t1 - t
-        times['confidence'] += time.perf_counter() - t1
-    if seconds is not None:
-        for stage, s in times.items():
-            seconds[stage] = seconds.get(stage, 0.0) + s
+        seconds['cnn'] += t1 - t
+        seconds['confidence'] += time.perf_counter() - t1
     return (cof_c, cof_d, vol) if volume else (cof_c, cof_d)
