@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import cv2
+import numpy as np
 
 from .cost import cost_volume
 from .datasets import list_frames, load_frame
@@ -56,16 +57,18 @@ def main(argv=None):
     left, right = (cv2.resize(g, KITTI_SIZE, interpolation=cv2.INTER_AREA) for g in gray_pair(frame.left, frame.right))
     nd = args.max_disp
     print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, repeat {args.repeat}')
-    census = cost_volume(left, right, nd, 'census')
+    census = cost_volume(left, right, nd, 'census', dtype=np.uint16)  # as the pipeline runs Census
+    census_f32 = census.astype(np.float32)
     stages = {
         'opencv_sgbm_hh': lambda: opencv_sgbm(left, right, nd),
-        'census': lambda: cost_volume(left, right, nd, 'census'),
+        'census': lambda: cost_volume(left, right, nd, 'census', dtype=np.uint16),
         'sad': lambda: cost_volume(left, right, nd, 'sad'),
         'sgm8': lambda: aggregate(census, 4, 128, 8),
         'sgm16': lambda: aggregate(census, 4, 128, 16),
+        'sgm16_float32': lambda: aggregate(census_f32, 4, 128, 16),
     }
     seconds = {name: median_seconds(fn, args.repeat) for name, fn in stages.items()}
-    del census, stages  # the whole pipeline runs with only its own arrays
+    del census, census_f32, stages  # the whole pipeline runs with only its own arrays
     pipeline = StereoPipeline(StereoConfig.for_cost('census', max_disp=nd))
     breakdown = {}
     for suffix, bf16 in (('', False), ('_bf16', True)):

@@ -17,7 +17,8 @@ def _refine(cost, gcp, cof_d, c_hi, c_low):
 
 
 def refine(cost, gcp, cof_d, c_hi, c_low):
-    """Refine a cost volume in place, as the paper does, and return it.
+    """Refine a cost volume (float32, or uint16 with integer `c_hi` and `c_low`) in place,
+    as the paper does, and return it.
 
     Every non-GCP pixel gets `c_hi` at all disparities; a GCP keeps its costs except
     `c_low` at its CNN disparity `cof_d`.
@@ -25,8 +26,10 @@ def refine(cost, gcp, cof_d, c_hi, c_low):
     if gcp.shape != cost.shape[:2] or cof_d.shape != cost.shape[:2]:
         raise ValueError(f'GCP mask {gcp.shape} and CNN disparity {cof_d.shape} must match '
                          f'the cost volume {cost.shape[:2]}')
+    if cost.dtype == np.uint16 and not all(float(v).is_integer() and 0 <= v <= 65535 for v in (c_hi, c_low)):
+        raise ValueError(f'a uint16 cost volume needs integer C_hi and C_low in [0, 65535], got {c_hi}, {c_low}')
     _refine(cost, np.ascontiguousarray(gcp, np.bool_), np.ascontiguousarray(cof_d, np.int32),
-            np.float32(c_hi), np.float32(c_low))
+            cost.dtype.type(c_hi), cost.dtype.type(c_low))
     return cost
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from . import cost as cost_mod
 from .gcp import refine
 from .images import gray_pair
-from .sgm import PATHS, aggregate, disparity
+from .sgm import PATHS, UINT16_MAX, aggregate, disparity
 
 # The paper's parameters for each matching cost (Zhong et al., section 4).
 COST_DEFAULTS = {
@@ -82,6 +82,23 @@ class StereoResult:
     seconds: dict  # wall time per stage
 
 
+def fixed_point_scale(cfg):
+    """The smallest integer s that makes s * (Census costs, P1, P2, and C_hi, C_low with GCPs)
+    integers whose path sums fit in uint16 (s = 10 for the paper's C_low = 1.3), or None
+    (SAD, or values such as C_low = 1.2345). With an s the pipeline keeps its volumes in
+    uint16: half the memory, faster SGM, exact integer arithmetic; the disparities equal the
+    float32 path's except where float32 rounding of a fractional value breaks a tie.
+    """
+    if cfg.cost != 'census':
+        return None
+    values = (cfg.p1, cfg.p2) + ((cfg.c_hi, cfg.c_low) if cfg.use_gcp else ())
+    top = max(cost_mod.max_cost(cfg.cost, cfg.window), cfg.c_hi if cfg.use_gcp else 0)
+    for s in range(1, 1001):
+        if all(abs(v * s - round(v * s)) <= 1e-9 * max(1.0, v * s) for v in values):
+            return s if cfg.paths * (top + cfg.p2) * s <= UINT16_MAX else None
+    return None
+
+
 class StereoPipeline:
     """Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
 
@@ -101,10 +118,11 @@ class StereoPipeline:
         same = (config.weights, config.device) == (self.config.weights, self.config.device)
         return StereoPipeline(config, self._net if same else None, self._workspace)
 
-    def _array(self, name, shape):
-        """The kept array `name` if it has `shape`, else None (the callee allocates; kept then)."""
+    def _array(self, name, shape, dtype):
+        """The kept array `name` if it has `shape` and `dtype`, else None (the callee
+        allocates; kept then)."""
         a = self._workspace.get(name)
-        return a if a is not None and a.shape == shape else None
+        return a if a is not None and a.shape == shape and a.dtype == dtype else None
 
     @property
     def net(self):
@@ -136,13 +154,17 @@ class StereoPipeline:
         if cfg.use_gcp:
             cof_c, cof_d = confidence
         shape = left.shape + (cfg.max_disp,)
-        volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window, self._array('cost', shape))
+        scale = fixed_point_scale(cfg)
+        dtype = np.dtype(np.float32 if scale is None else np.uint16)
+        fixed = (lambda v: v) if scale is None else (lambda v: round(v * scale))
+        volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window,
+                                      self._array('cost', shape, dtype), scale or 1, dtype)
         lap('cost')
         if cfg.use_gcp:
             gcp = cof_c > cfg.theta
-            refine(volume, gcp, cof_d, cfg.c_hi, cfg.c_low)
+            refine(volume, gcp, cof_d, fixed(cfg.c_hi), fixed(cfg.c_low))
             lap('refine')
-        total = aggregate(volume, cfg.p1, cfg.p2, cfg.paths, self._array('total', shape))
+        total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, self._array('total', shape, dtype))
         self._workspace.update(cost=volume, total=total)
         lap('sgm')
         disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)

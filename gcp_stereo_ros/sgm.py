@@ -1,4 +1,4 @@
-"""Semi-global matching (Hirschmueller 2008) on a float32 cost volume (H, W, D).
+"""Semi-global matching (Hirschmueller 2008) on a cost volume (H, W, D).
 
 Path cost along direction r = (dx, dy), with p - r the previous pixel on the path:
     L_r(p, d) = C(p, d) + min(L_r(p-r, d), L_r(p-r, d+-1) + P1, min_k L_r(p-r, k) + P2)
@@ -11,14 +11,20 @@ Paths: 4 (horizontal, vertical), 8 (+ diagonals), 16 (+ the 8 knight moves (+-1,
 row by row (rows in parallel), then every path coming from above in one top-down sweep and
 every path from below in one bottom-up sweep (pixels of a row in parallel, the previous two
 rows of each path kept in a ring buffer). C is read and S written once per sweep.
+
+Two number types, same code: float32, and uint16 for integer costs (Census distances,
+integer penalties). uint16 is exact and halves the memory traffic, which bounds the sweeps;
+it needs paths * (max C + P2) <= 65535, since L_r <= C + P2 and S sums `paths` of them.
 """
 import cv2
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.extending import overload
 
 from .cost import output_array
 
 PATHS = (4, 8, 16)
+UINT16_MAX = 65535
 
 
 def directions(paths):
@@ -34,31 +40,54 @@ def directions(paths):
     return dirs
 
 
+def _keys(v):
+    """v as an array that orders like it and whose min reduction vectorizes: the int32 bits
+    of non-negative float32 values (LLVM leaves a float min reduction scalar), else v."""
+
+
+@overload(_keys, inline='always')
+def _keys_impl(v):
+    if v.dtype == types.float32:
+        return lambda v: v.view(np.int32)
+    return lambda v: v
+
+
+def _as(like, x):
+    """x converted to the element type of the array `like`."""
+
+
+@overload(_as, inline='always')
+def _as_impl(like, x):
+    dtype = like.dtype
+    return lambda like, x: dtype(x)
+
+
 @njit(inline='always', fastmath=True)
-def _min_bits(v):
-    """min(v) of a non-negative float32 array, as its int32 bit pattern. Such floats order
-    like their bits, and an integer min reduction vectorizes where a float one does not."""
-    bits = v.view(np.int32)
-    m = bits[0]
-    for d in range(1, bits.shape[0]):
-        b = bits[d]
+def _min_key(v):
+    """The key (see `_keys`) of min(v), v >= 0."""
+    keys = _keys(v)
+    m = keys[0]
+    for d in range(1, keys.shape[0]):
+        b = keys[d]
         m = b if b < m else m
     return m
 
 
 @njit(inline='always', fastmath=True)
 def _path_step(c, prev, prev_min, p1, p2, out):
-    """out = L_r(p, .) from c = C(p, .) and prev = L_r(p - r, .); returns min(out) as int32 bits."""
+    """out = L_r(p, .) from c = C(p, .) and prev = L_r(p - r, .); returns the key of min(out).
+    Each value is cast back to the volume's type, so uint16 math stays 16 bits wide."""
     nd = c.shape[0]
-    jump = prev_min + p2
+    jump = _as(out, prev_min + p2)
     if nd == 1:
-        out[0] = c[0] + min(prev[0], jump) - prev_min
+        out[0] = _as(out, c[0] + min(prev[0], jump) - prev_min)
     else:
-        out[0] = c[0] + min(min(prev[0], prev[1] + p1), jump) - prev_min
+        out[0] = _as(out, c[0] + min(min(prev[0], _as(out, prev[1] + p1)), jump) - prev_min)
         for d in range(1, nd - 1):
-            out[d] = c[d] + min(min(prev[d], min(prev[d - 1], prev[d + 1]) + p1), jump) - prev_min
-        out[nd - 1] = c[nd - 1] + min(min(prev[nd - 1], prev[nd - 2] + p1), jump) - prev_min
-    return _min_bits(out)
+            step = _as(out, min(prev[d - 1], prev[d + 1]) + p1)
+            out[d] = _as(out, c[d] + min(min(prev[d], step), jump) - prev_min)
+        out[nd - 1] = _as(out, c[nd - 1] + min(min(prev[nd - 1], _as(out, prev[nd - 2] + p1)), jump) - prev_min)
+    return _min_key(out)
 
 
 @njit(parallel=True, cache=True, fastmath=True)
@@ -66,14 +95,14 @@ def _horizontal(cost, p1, p2, total):
     """total = L_(1,0) + L_(-1,0): both horizontal paths of each row."""
     h, w, nd = cost.shape
     for y in prange(h):
-        a = np.empty(nd, np.float32)
-        b = np.empty(nd, np.float32)
-        m = np.empty(1, np.int32)  # min of the last path step; read as float32 through mf
-        mf = m.view(np.float32)
+        a = np.empty(nd, cost.dtype)
+        b = np.empty(nd, cost.dtype)
+        m = np.empty(1, cost.dtype)  # min of the last path step, written through its key
+        m_key = _keys(m)
         for backward in (False, True):
             x0 = w - 1 if backward else 0
             a[:] = cost[y, x0]
-            m[0] = _min_bits(a)
+            m_key[0] = _min_key(a)
             if backward:
                 total[y, x0] += a
             else:
@@ -81,7 +110,7 @@ def _horizontal(cost, p1, p2, total):
             for i in range(1, w):
                 x = w - 1 - i if backward else i
                 prev, cur = (a, b) if i % 2 == 1 else (b, a)
-                m[0] = _path_step(cost[y, x], prev, mf[0], p1, p2, cur)
+                m_key[0] = _path_step(cost[y, x], prev, m[0], p1, p2, cur)
                 if backward:
                     total[y, x] += cur
                 else:
@@ -92,9 +121,9 @@ def _horizontal(cost, p1, p2, total):
 def _sweep(cost, p1, p2, total, dirs, down):
     """total += L_r for each r in dirs; dy > 0 counts rows back in sweep order."""
     h, w, nd = cost.shape
-    buf = np.empty((dirs.shape[0], 3, w, nd), np.float32)
-    mins = np.empty((dirs.shape[0], 3, w), np.int32)  # min_d of each buf row, as float32 bits
-    min_values = mins.view(np.float32)
+    buf = np.empty((dirs.shape[0], 3, w, nd), cost.dtype)
+    mins = np.empty((dirs.shape[0], 3, w), cost.dtype)  # min_d of each buf row
+    min_keys = _keys(mins)
     for i in range(h):
         y = i if down else h - 1 - i
         slot = i % 3
@@ -107,36 +136,45 @@ def _sweep(cost, p1, p2, total, dirs, down):
                 cur = buf[k, slot, x]
                 if back >= 0 and 0 <= px < w:
                     ps = back % 3
-                    mins[k, slot, x] = _path_step(c, buf[k, ps, px], min_values[k, ps, px], p1, p2, cur)
+                    min_keys[k, slot, x] = _path_step(c, buf[k, ps, px], mins[k, ps, px], p1, p2, cur)
                 else:
                     cur[:] = c
-                    mins[k, slot, x] = _min_bits(c)
+                    min_keys[k, slot, x] = _min_key(c)
                 for d in range(nd):
-                    acc[d] += cur[d]
+                    acc[d] = _as(acc, acc[d] + cur[d])
 
 
 @njit(parallel=True, cache=True)
-def _invalid_cells(cost):
-    """Number of cells that are negative, NaN or infinite."""
+def _scan(cost):
+    """(number of cells that are negative, NaN or infinite, largest value)."""
     flat = cost.reshape(-1)
     n = 0
+    top = np.zeros(1, flat.dtype)[0]
     for i in prange(flat.shape[0]):
         v = flat[i]
         if not (0 <= v < np.inf):
             n += 1
-    return n
+        top = max(top, v)
+    return n, top
+
+
+def as_volume(a):
+    """`a` as a C-contiguous volume SGM takes: uint16 stays uint16, the rest becomes float32."""
+    return np.ascontiguousarray(a, dtype=np.uint16 if a.dtype == np.uint16 else np.float32)
 
 
 def aggregate(cost, p1, p2, paths=16, out=None):
-    """Summed path costs S (H, W, D) float32 of a cost volume (see module doc).
+    """Summed path costs S (H, W, D) of a cost volume (see module doc), of the volume's type:
+    uint16 for a uint16 volume, else float32.
 
-    Costs must be finite and >= 0 (every matching cost here is); ValueError otherwise.
+    Costs must be finite and >= 0 (every matching cost here is); ValueError otherwise. For
+    uint16, P1 and P2 must be integers and paths * (max cost + P2) at most 65535.
     `out`: an array to write S into (see `cost.output_array`), not `cost` itself.
     """
-    cost = np.ascontiguousarray(cost, dtype=np.float32)
+    cost = as_volume(np.asarray(cost))
     if cost.ndim != 3 or 0 in cost.shape:
         raise ValueError(f'cost volume must have shape (H, W, D) with no empty axis, got {cost.shape}')
-    bad = _invalid_cells(cost)
+    bad, top = _scan(cost)
     if bad:
         raise ValueError(f'cost volume has {bad} cells that are negative, NaN or infinite; '
                          'SGM needs finite costs >= 0')
@@ -144,15 +182,22 @@ def aggregate(cost, p1, p2, paths=16, out=None):
     if not (0 <= p1 <= p2):
         raise ValueError(f'SGM penalties need 0 <= P1 <= P2, got P1={p1}, P2={p2}')
     dirs = directions(paths)
-    total = output_array(out, cost.shape)
+    if cost.dtype == np.uint16:
+        if not (p1.is_integer() and p2.is_integer()):
+            raise ValueError(f'a uint16 cost volume needs integer penalties, got P1={p1}, P2={p2}')
+        if paths * (int(top) + p2) > UINT16_MAX:
+            raise ValueError(f'uint16 path sums would overflow: {paths} paths * (max cost {top} + P2 {p2:g}) '
+                             f'> {UINT16_MAX}; use a float32 volume')
+    total = output_array(out, cost.shape, cost.dtype)
     if np.shares_memory(total, cost):
         raise ValueError('out must not overlap the cost volume')
-    _horizontal(cost, np.float32(p1), np.float32(p2), total)
+    p1, p2 = cost.dtype.type(p1), cost.dtype.type(p2)
+    _horizontal(cost, p1, p2, total)
     down = np.array([d for d in dirs if d[1] > 0], np.int64)
     # Seen from a bottom-up sweep, (dx, dy) from below is (-dx, dy) from above.
     up = np.array([(-dx, dy) for dx, dy in down], np.int64)
-    _sweep(cost, np.float32(p1), np.float32(p2), total, down, True)
-    _sweep(cost, np.float32(p1), np.float32(p2), total, up, False)
+    _sweep(cost, p1, p2, total, down, True)
+    _sweep(cost, p1, p2, total, up, False)
     return total
 
 
@@ -162,16 +207,17 @@ def _wta(total, subpixel, lr_tol, out, consistent):
     for y in prange(h):
         for x in range(w):
             s = total[y, x]
-            m = _min_bits(s)  # S >= 0: the first d whose bits equal the minimum's
-            bits = s.view(np.int32)
+            m = _min_key(s)  # S >= 0: the first d whose key equals the minimum's
+            keys = _keys(s)
             best = 0
-            while bits[best] != m:
+            while keys[best] != m:
                 best += 1
             disp = np.float32(best)
             if subpixel and 0 < best < nd - 1:
-                curv = s[best - 1] - 2 * s[best] + s[best + 1]
+                lo, mid, hi = np.float32(s[best - 1]), np.float32(s[best]), np.float32(s[best + 1])
+                curv = lo - 2 * mid + hi
                 if curv > 0:
-                    disp += (s[best - 1] - s[best + 1]) / (2 * curv)
+                    disp += (lo - hi) / (2 * curv)
             if lr_tol >= 0:
                 # Right-view WTA at xr = x - best: argmin_d S(xr + d, d) over cells inside the image.
                 xr = x - best
@@ -184,16 +230,16 @@ def _wta(total, subpixel, lr_tol, out, consistent):
 
 
 def disparity(total, subpixel=False, lr_check=False, median=False):
-    """Winner-takes-all disparity (H, W) float32 from summed path costs S (finite, >= 0, as
-    `aggregate` returns them; ValueError otherwise), first minimum on ties.
+    """Winner-takes-all disparity (H, W) float32 from summed path costs S (uint16, or finite
+    and >= 0 as `aggregate` returns them; ValueError otherwise), first minimum on ties.
 
     Options (all off by default; the paper uses none): `subpixel` parabola fit through the
     minimum and its neighbours; `median` 3x3 median filter; `lr_check` marks NaN where the
     right-view winner at x - d differs from d by more than 1 px (applied after the median,
     so invalid pixels stay NaN).
     """
-    total = np.ascontiguousarray(total, dtype=np.float32)
-    bad = _invalid_cells(total)
+    total = as_volume(np.asarray(total))
+    bad = _scan(total)[0] if total.dtype == np.float32 else 0
     if bad:
         raise ValueError(f'summed path costs have {bad} cells that are negative, NaN or infinite')
     out = np.empty(total.shape[:2], np.float32)

@@ -44,6 +44,23 @@ def test_census_cost_is_hamming_distance(motorcycle):
     assert (vol[10, 10, 7:] == 80).all() and (vol[10, 10, :7] < 80).any()
 
 
+def test_uint16_census_is_scaled_hamming_distance(motorcycle):
+    left, right = gray_pair(*motorcycle)
+    vol = cost_volume(left, right, 32, 'census')
+    fixed = cost_volume(left, right, 32, 'census', scale=10, dtype=np.uint16)
+    assert fixed.dtype == np.uint16
+    np.testing.assert_array_equal(fixed, vol * 10)
+    np.testing.assert_array_equal(cost_volume(left, right, 32, 'census', dtype=np.uint16), vol)
+    with pytest.raises(ValueError, match='16 bits'):
+        cost_volume(left, right, 32, 'sad', dtype=np.uint16)
+    with pytest.raises(ValueError, match='16 bits'):
+        cost_volume(left, right, 32, 'census', scale=1000, dtype=np.uint16)  # 80000 > 65535
+    with pytest.raises(ValueError, match='scale'):
+        cost_volume(left, right, 32, 'census', scale=0)
+    with pytest.raises(ValueError, match='dtype'):
+        cost_volume(left, right, 32, 'census', dtype=np.int32)
+
+
 def test_sad_is_standardized_window_mean(motorcycle):
     left, right = gray_pair(*motorcycle)
     vol = cost_volume(left, right, 24, 'sad')

@@ -9,7 +9,7 @@ from gcp_stereo_ros.evaluate import opencv_sgbm
 from gcp_stereo_ros.gcp import refine
 from gcp_stereo_ros.metrics import error_rates
 from gcp_stereo_ros.params import config_from_params, load_params_file
-from gcp_stereo_ros.pipeline import StereoConfig, StereoPipeline
+from gcp_stereo_ros.pipeline import StereoConfig, StereoPipeline, fixed_point_scale
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -58,6 +58,48 @@ def test_refinement_rule_on_hand_made_volume():
     want[~gcp] = 200.0
     want[0, 0, 2] = want[0, 2, 3] = want[1, 2, 0] = np.float32(1.3)
     np.testing.assert_array_equal(out, want)
+
+
+def test_refinement_of_uint16_volume_needs_integers():
+    cost = np.arange(2 * 3 * 4, dtype=np.uint16).reshape(2, 3, 4)
+    gcp = np.array([[True, False, True], [False, False, True]])
+    cof_d = np.array([[2, 0, 3], [1, 1, 0]], np.int32)
+    np.testing.assert_array_equal(refine(cost.copy(), gcp, cof_d, 2000, 13),
+                                  refine(cost.astype(np.float32), gcp, cof_d, 2000.0, 13.0))
+    with pytest.raises(ValueError, match='integer C_hi and C_low'):
+        refine(cost, gcp, cof_d, 200.0, 1.3)
+
+
+@pytest.mark.parametrize('overrides, scale', [
+    (dict(), 10),  # the paper's C_low = 1.3
+    (dict(c_low=10.0, p2=64.0), 1),  # config/gcp_stereo_tuned.yaml
+    (dict(use_gcp=False), 1),
+    (dict(c_low=1.25), 4),
+    (dict(c_low=1.2345), None),  # would need 10000: the path sums overflow 16 bits
+    (dict(p2=4000.0), None),  # 16 * (200 + 4000) > 65535
+])
+def test_fixed_point_scale(overrides, scale):
+    assert fixed_point_scale(StereoConfig.for_cost('census', **overrides)) == scale
+    assert fixed_point_scale(StereoConfig.for_cost('sad', p1=1.0, p2=10.0, c_hi=5.0, c_low=1.0)) is None
+
+
+def test_fixed_point_pipeline_matches_float32(motorcycle, monkeypatch):
+    """The uint16 path against the float32 one. With integer parameters they agree exactly;
+    with the paper's C_low = 1.3 (scale 10) float32 rounds 1.3 and breaks some ties the
+    other way: measured 5 of 48200 pixels here, 20 of 370500 on the whole pair."""
+    left, right, _ = motorcycle
+    left, right = left[300:500, 500:800], right[300:500, 500:800]
+    paper = StereoPipeline(StereoConfig.for_cost('census', max_disp=64))
+    tuned = paper.with_config(paper.config.replace(theta=0.85, c_low=10.0, p2=64.0))
+    assert (fixed_point_scale(paper.config), fixed_point_scale(tuned.config)) == (10, 1)
+    fixed = paper(left, right)
+    conf = fixed.cof_c, fixed.cof_d
+    fixed_tuned = tuned(left, right, conf)
+    assert paper._workspace['total'].dtype == np.uint16
+    monkeypatch.setattr('gcp_stereo_ros.pipeline.fixed_point_scale', lambda cfg: None)
+    assert (paper(left, right, conf).disparity != fixed.disparity).mean() < 1e-3
+    assert paper._workspace['total'].dtype == np.float32
+    np.testing.assert_array_equal(tuned(left, right, conf).disparity, fixed_tuned.disparity)
 
 
 @pytest.mark.parametrize('change, message', [

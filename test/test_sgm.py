@@ -38,16 +38,35 @@ def reference_aggregate(cost, p1, p2, paths):
     return total
 
 
+@pytest.mark.parametrize('dtype', [np.float32, np.uint16])
 @pytest.mark.parametrize('paths', [4, 8, 16])
 @pytest.mark.parametrize('shape', [(7, 11, 5), (9, 6, 1), (1, 8, 4), (5, 1, 3)])
-def test_aggregate_equals_reference(paths, shape):
+def test_aggregate_equals_reference(paths, shape, dtype):
     rng = np.random.default_rng(sum(shape) + paths)
-    cost = rng.integers(0, 40, size=shape).astype(np.float32)
+    cost = rng.integers(0, 40, size=shape).astype(dtype)
     got = aggregate(cost, 3, 17, paths)
     want = reference_aggregate(cost, 3, 17, paths)
-    np.testing.assert_array_equal(got, want.astype(np.float32))
+    assert got.dtype == dtype
+    np.testing.assert_array_equal(got, want.astype(dtype))
     # WTA takes the first minimum on ties, as np.argmin does.
     np.testing.assert_array_equal(disparity(got), np.argmin(want, axis=2).astype(np.float32))
+
+
+def test_uint16_sums_up_to_the_limit_are_exact():
+    # 16 * (max cost 1000 + P2 3000) = 64000: path costs and sums reach near 65535 and
+    # P1 = P2 / 2 makes L + P1 large too; any 16-bit wrap-around would show.
+    rng = np.random.default_rng(7)
+    cost = rng.integers(0, 1001, size=(12, 15, 9))
+    cost[3, 4] = 1000
+    got = aggregate(cost.astype(np.uint16), 1500, 3000, 16)
+    want = reference_aggregate(cost, 1500, 3000, 16)
+    assert want.max() > 30000
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(disparity(got), np.argmin(want, axis=2).astype(np.float32))
+    with pytest.raises(ValueError, match='overflow'):
+        aggregate(cost.astype(np.uint16), 1500, 3100, 16)
+    with pytest.raises(ValueError, match='integer penalties'):
+        aggregate(cost.astype(np.uint16), 1.5, 30, 16)
 
 
 def test_paths_and_penalties_validated():
