@@ -55,29 +55,24 @@ def _popcount(v):
 
 
 @njit(parallel=True, cache=True)
-def _census_transform(gray, rad):
-    h, w = gray.shape
+def _census_transform(padded, rad):
+    """Bit strings of the image inside `padded` (padded by `rad` on every side), built a
+    neighbour offset at a time over whole rows, so the inner loop vectorizes."""
+    h, w = padded.shape[0] - 2 * rad, padded.shape[1] - 2 * rad
     out = np.zeros((2, h, w), np.uint64)
     for y in prange(h):
-        for x in range(w):
-            c = gray[y, x]
-            lo = np.uint64(0)
-            hi = np.uint64(0)
-            k = 0
-            for dy in range(-rad, rad + 1):
-                yy = min(max(y + dy, 0), h - 1)
-                for dx in range(-rad, rad + 1):
-                    if dy == 0 and dx == 0:
-                        continue
-                    xx = min(max(x + dx, 0), w - 1)
-                    if gray[yy, xx] < c:
-                        if k < 64:
-                            lo |= _ONE << np.uint64(k)
-                        else:
-                            hi |= _ONE << np.uint64(k - 64)
-                    k += 1
-            out[0, y, x] = lo
-            out[1, y, x] = hi
+        centre = padded[y + rad, rad:rad + w]
+        k = 0
+        for dy in range(-rad, rad + 1):
+            for dx in range(-rad, rad + 1):
+                if dy == 0 and dx == 0:
+                    continue
+                neighbour = padded[y + rad + dy, rad + dx:rad + dx + w]
+                word = out[k // 64, y]
+                shift = np.uint64(k % 64)
+                for x in range(w):
+                    word[x] |= np.uint64(neighbour[x] < centre[x]) << shift
+                k += 1
     return out
 
 
@@ -89,7 +84,8 @@ def census_transform(gray, window=9):
     the cost volume anyway).
     """
     check_window('census', window)
-    return _census_transform(np.ascontiguousarray(gray, dtype=np.float32), window // 2)
+    rad = window // 2
+    return _census_transform(np.pad(np.asarray(gray, dtype=np.float32), rad, mode='edge'), rad)
 
 
 @njit(parallel=True, cache=True)
@@ -97,15 +93,20 @@ def _census_cost(cl, cr, ndisp, rad, scale, invalid, out):
     h, w = cl.shape[1], cl.shape[2]
     for y in prange(h):
         row_ok = rad <= y < h - rad
+        # The right row reversed: x - d for d = 0, 1, ... becomes a forward run, which vectorizes.
+        right_lo = cr[0, y, ::-1].copy()
+        right_hi = cr[1, y, ::-1].copy()
         for x in range(w):
-            ok = row_ok and rad <= x < w - rad
+            nvalid = min(ndisp, x - rad + 1) if row_ok and rad <= x < w - rad else 0  # d <= x - rad
             lo = cl[0, y, x]
             hi = cl[1, y, x]
-            for d in range(ndisp):
-                if ok and x - d >= rad:
-                    out[y, x, d] = (_popcount(lo ^ cr[0, y, x - d]) + _popcount(hi ^ cr[1, y, x - d])) * scale
-                else:
-                    out[y, x, d] = invalid
+            r_lo = right_lo[w - 1 - x:]  # r_lo[d] = right word at x - d
+            r_hi = right_hi[w - 1 - x:]
+            cell = out[y, x]
+            for d in range(nvalid):
+                cell[d] = (_popcount(lo ^ r_lo[d]) + _popcount(hi ^ r_hi[d])) * scale
+            for d in range(nvalid, ndisp):
+                cell[d] = invalid
 
 
 @njit(parallel=True, cache=True)
