@@ -119,10 +119,13 @@ def _sad_cost(left, right, ndisp, rad, scale, invalid, out):
             continue
         col = np.zeros((w, ndisp), np.float32)  # column sums of |L - R| over the window rows
         for yy in range(y - rad, y + rad + 1):
+            reversed_right = right[yy, ::-1].copy()  # as in _census_cost
             for x in range(w):
                 lv = left[yy, x]
+                r = reversed_right[w - 1 - x:]  # r[d] = right[yy, x - d]
+                c = col[x]
                 for d in range(min(ndisp, x + 1)):
-                    col[x, d] += abs(lv - right[yy, x - d])
+                    c[d] += abs(lv - r[d])
         acc = np.zeros(ndisp, np.float32)  # window sum, slid along the row
         for x in range(min(rad, w)):
             for d in range(ndisp):
@@ -134,11 +137,12 @@ def _sad_cost(left, right, ndisp, rad, scale, invalid, out):
             if x - rad - 1 >= 0:
                 for d in range(ndisp):
                     acc[d] -= col[x - rad - 1, d]
-            for d in range(ndisp):
-                if rad <= x < w - rad and x - d >= rad:
-                    out[y, x, d] = min(acc[d] / area * scale, invalid)
-                else:
-                    out[y, x, d] = invalid
+            nvalid = min(ndisp, x - rad + 1) if rad <= x < w - rad else 0  # d <= x - rad
+            cell = out[y, x]
+            for d in range(nvalid):
+                cell[d] = min(acc[d] / area * scale, invalid)
+            for d in range(nvalid, ndisp):
+                cell[d] = invalid
 
 
 def output_array(out, shape, dtype=np.float32):
