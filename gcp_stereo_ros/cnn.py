@@ -10,8 +10,10 @@ final ReLU the descriptors are non-negative, so their inner product is a cosine 
 Dense use (`confidence`): the branch runs fully convolutionally over each image
 (replicate-padded by 4, so every pixel gets a descriptor), once per pixel. A numba kernel
 on the CPU L2-normalizes the raw descriptors (float32, or bfloat16 widened exactly) and
-streams the confidence volume Vol(x, y, d) = <f_L(x, y), f_R(x - d, y)>, keeping only cof_c = max_d Vol and cof_d = argmax_d Vol (first maximum on ties);
-cells with x - d < 0 have Vol = 0. Row y of Vol needs only row y of both descriptor
+streams the confidence volume Vol(x, y, d) = <f_L(x, y), f_R(x - d, y)>, keeping only
+cof_c = max_d Vol and cof_d = argmax_d Vol (first maximum on ties), and the right view's
+CNN disparity cof_dr(xr, y) = argmax_d Vol(xr + d, y, d), for GCPs that both views agree
+on (`gcp.select`); cells with x - d < 0 have Vol = 0. Row y of Vol needs only row y of both descriptor
 images, so both steps run on strips of STRIP_ROWS rows: the activations of a strip stay in
 the CPU caches (measured on a 2-core Zen 4 for a KITTI pair: bf16 convolutions 0.79 s for
 the whole images, 0.54 s in strips of 64 rows) and the descriptors of the whole images are
@@ -106,21 +108,36 @@ def _unit_rows(bits, shift, y):
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def _best_match(bits, shift, max_disp, cof_c, cof_d):
-    """Streamed max / first argmax over d of <f_L[y, x], f_R[y, x - d]> into (H, W) rows."""
+def _best_match(bits, shift, max_disp, cof_c, cof_d, cof_dr):
+    """Streamed max / first argmax over d of Vol(y, x, d) = <f_L[y, x], f_R[y, x - d]> into
+    (H, W) rows, and for each right pixel xr the first argmax over d of Vol(y, xr + d, d)."""
     _, h, w, _ = bits.shape
     for y in prange(h):
         f = _unit_rows(bits, shift, y)
+        vals = np.empty(max_disp, np.float32)
+        # Right-view max and argmax stored reversed, at w - 1 - xr: for one x, the right
+        # pixels x - d, d = 0, 1, ..., are then a forward run, which vectorizes.
+        right_best = np.full(w, np.float32(-1.0))
+        right_arg = np.zeros(w, np.int32)
         for x in range(w):
-            best = np.float32(-1.0)
+            n = min(max_disp, x + 1)
+            for d in range(n):
+                vals[d] = _dot(f[0, x], f[1, x - d])
+            best = vals[0]
             arg = 0
-            for d in range(min(max_disp, x + 1)):
-                v = _dot(f[0, x], f[1, x - d])
-                if v > best:
-                    best = v
+            for d in range(1, n):
+                if vals[d] > best:
+                    best = vals[d]
                     arg = d
             cof_c[y, x] = best
             cof_d[y, x] = arg
+            run_best = right_best[w - 1 - x:]
+            run_arg = right_arg[w - 1 - x:]
+            for d in range(n):  # x, and so d, grows for a fixed x - d: first maximum kept
+                if vals[d] > run_best[d]:
+                    run_best[d] = vals[d]
+                    run_arg[d] = d
+        cof_dr[y] = right_arg[::-1]
 
 
 @njit(parallel=True, cache=True, fastmath=True)
@@ -150,9 +167,11 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     streaming over d without materializing the volume. `seconds`: a dict that gains the wall time of the
     convolutions ('cnn') and of the correlation ('confidence').
 
-    Returns (cof_c, cof_d): float32 (H, W) max_d Vol in [0, 1] and int32 (H, W) argmax_d Vol
-    (first maximum on ties), where Vol(y, x, d) = 0 for x - d < 0. With `volume=True` also
-    returns the float32 (H, W, max_disp) volume Vol (memory-hungry; for tests and plots).
+    Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1], int32 (H, W)
+    argmax_d Vol, and int32 (H, W) cof_dr, for each right pixel xr the argmax over d of
+    Vol(y, xr + d, d) (first maxima on ties), where Vol(y, x, d) = 0 for x - d < 0. With
+    `volume=True` also the float32 (H, W, max_disp) volume Vol (memory-hungry; for tests
+    and plots).
     """
     lg, rg = gray_pair(left, right)
     h, w = lg.shape
@@ -163,6 +182,7 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     net.to(memory_format=torch.channels_last)  # in place; the 1-channel input alone cannot select it
     cof_c = np.empty((h, w), np.float32)
     cof_d = np.empty((h, w), np.int32)
+    cof_dr = np.empty((h, w), np.int32)
     vol = np.empty((h, w, max_disp), np.float32) if volume else None
     seconds = {} if seconds is None else seconds
     for stage in ('cnn', 'confidence'):
@@ -178,9 +198,9 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
         else:
             bits, shift = f.float().numpy().view(np.uint32), 0
         t1 = time.perf_counter()
-        _best_match(bits, shift, max_disp, cof_c[y0:y1], cof_d[y0:y1])
+        _best_match(bits, shift, max_disp, cof_c[y0:y1], cof_d[y0:y1], cof_dr[y0:y1])
         if volume:
             _volume(bits, shift, vol[y0:y1])
         seconds['cnn'] += t1 - t
         seconds['confidence'] += time.perf_counter() - t1
-    return (cof_c, cof_d, vol) if volume else (cof_c, cof_d)
+    return (cof_c, cof_d, cof_dr, vol) if volume else (cof_c, cof_d, cof_dr)

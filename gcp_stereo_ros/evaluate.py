@@ -74,7 +74,7 @@ class Runner:
             from .cnn import confidence
             pipe = self.pipeline('census+gcp', max_disp)
             cfg = pipe.config
-            _, cof_d = confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16)
+            _, cof_d, _ = confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16)
             return cof_d.astype(np.float32), None, time.perf_counter() - t
         result = self.pipeline(method, max_disp)(left, right)
         return result.disparity, result, time.perf_counter() - t

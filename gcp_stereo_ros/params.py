@@ -37,6 +37,8 @@ PARAMS = (
     Param('theta', _D.theta, 'GCP threshold on the CNN confidence in [0, 1]', 'theta', (0.0, 1.0, 0.0)),
     Param('c_hi', _D.c_hi, 'cost given to every disparity of a non-GCP pixel', 'c_hi', (0.0, 10000.0, 0.0)),
     Param('c_low', _D.c_low, 'cost given to a GCP at its CNN disparity (<= c_hi)', 'c_low', (0.0, 10000.0, 0.0)),
+    Param('gcp_lr_check', _D.gcp_lr_check, "GCPs only where the right view's CNN disparity agrees within 1 px",
+          'gcp_lr_check'),
     Param('weights', _D.weights, "CNN weights file ('' = the weights shipped with the package)", 'weights'),
     Param('device', _D.device, "torch device of the CNN: 'cpu', 'cuda' or 'cuda:N'", 'device'),
     Param('bf16', _D.bf16, 'bfloat16 CNN descriptors (CPUs with avx512_bf16 or AMX, CUDA)', 'bf16'),

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import cost as cost_mod
-from .gcp import refine
+from .gcp import refine, select
 from .images import gray_pair
 from .sgm import PATHS, UINT16_MAX, aggregate, disparity
 
@@ -33,6 +33,7 @@ class StereoConfig:
     theta: float = COST_DEFAULTS['census']['theta']
     c_hi: float = COST_DEFAULTS['census']['c_hi']
     c_low: float = COST_DEFAULTS['census']['c_low']
+    gcp_lr_check: bool = False  # GCPs only where the right view's CNN disparity agrees (not in the paper)
     weights: str = ''  # '' = the weights shipped with the package
     device: str = 'cpu'
     bf16: bool = False  # bfloat16 CNN descriptors (CPUs with avx512_bf16 / AMX, or CUDA)
@@ -79,6 +80,7 @@ class StereoResult:
     gcp: np.ndarray | None  # bool (H, W) GCP mask, None without GCPs
     cof_c: np.ndarray | None  # float32 (H, W) CNN confidence max_d Vol
     cof_d: np.ndarray | None  # int32 (H, W) CNN disparity argmax_d Vol
+    cof_dr: np.ndarray | None  # int32 (H, W) right view's CNN disparity (see cnn.confidence)
     seconds: dict  # wall time per stage
 
 
@@ -132,7 +134,7 @@ class StereoPipeline:
         return self._net
 
     def __call__(self, left, right, confidence=None):
-        """StereoResult of a pair. `confidence`: (cof_c, cof_d) of an earlier run on the same
+        """StereoResult of a pair. `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same
         pair and max_disp, to sweep GCP/SGM parameters without running the CNN again."""
         cfg = self.config
         net = self.net if cfg.use_gcp and confidence is None else None
@@ -146,13 +148,13 @@ class StereoPipeline:
             t = now
 
         left, right = gray_pair(left, right)
-        gcp = cof_c = cof_d = None
+        gcp = cof_c = cof_d = cof_dr = None
         if net is not None:
             from .cnn import confidence as cnn_confidence
             confidence = cnn_confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16, seconds=seconds)
             t = time.perf_counter()
         if cfg.use_gcp:
-            cof_c, cof_d = confidence
+            cof_c, cof_d, cof_dr = confidence
         shape = left.shape + (cfg.max_disp,)
         scale = fixed_point_scale(cfg)
         dtype = np.dtype(np.float32 if scale is None else np.uint16)
@@ -161,7 +163,7 @@ class StereoPipeline:
                                       self._array('cost', shape, dtype), scale or 1, dtype)
         lap('cost')
         if cfg.use_gcp:
-            gcp = cof_c > cfg.theta
+            gcp = select(cof_c, cof_d, cof_dr, cfg.theta, cfg.gcp_lr_check)
             refine(volume, gcp, cof_d, fixed(cfg.c_hi), fixed(cfg.c_low))
             lap('refine')
         total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, self._array('total', shape, dtype))
@@ -169,4 +171,4 @@ class StereoPipeline:
         lap('sgm')
         disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)
         lap('wta')
-        return StereoResult(disp, gcp, cof_c, cof_d, seconds)
+        return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds)

@@ -58,7 +58,7 @@ def sweep(args):
             result = pipe(frame.left, frame.right, confidence=conf)
             row = {'frame': name, **point, 'bad3': error_rates(result.disparity, frame.gt, frame.valid)['bad3']}
             if result.gcp is not None:
-                conf = (result.cof_c, result.cof_d)
+                conf = (result.cof_c, result.cof_d, result.cof_dr)
                 row['gcp_density'], row['gcp_accuracy'] = gcp_quality(result.gcp, result.cof_d, frame.gt, frame.valid)
             rows.append(row)
         print(f'{name}: best ' + _best(rows, name, grid))

@@ -149,7 +149,7 @@ def validate(net, frames, thetas):
         for f in frames:
             rng = np.random.default_rng(0)
             loss = float(hinge(*pair_scores(net, views(f)[0], rng)))
-            cof_c, cof_d = confidence(net, f.left, f.right, f.max_disp)
+            cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp)
             stats = {f'{t:g}': gcp_quality(cof_c > t, cof_d, f.gt, f.valid) for t in thetas}
             out[f.name] = {'loss': loss, 'wta_accuracy': gcp_quality(cof_c >= 0, cof_d, f.gt, f.valid)[1],
                            'gcp': stats}
