@@ -10,10 +10,10 @@ final ReLU the descriptors are non-negative, so their inner product is a cosine 
 Dense use (`confidence`): the branch runs fully convolutionally over each image
 (replicate-padded by 4, so every pixel gets a descriptor), once per pixel. A numba kernel
 on the CPU L2-normalizes the raw descriptors (float32, or bfloat16 widened exactly) and
-streams the confidence volume Vol(x, y, d) = <f_L(x, y), f_R(x - d, y)>, keeping only
-cof_c = max_d Vol and cof_d = argmax_d Vol (first maximum on ties), and the right view's
-CNN disparity cof_dr(xr, y) = argmax_d Vol(xr + d, y, d), for GCPs that both views agree
-on (`gcp.select`); cells with x - d < 0 have Vol = 0. Row y of Vol needs only row y of both descriptor
+streams the confidence volume Vol(y, x, d) = <f_L(y, x), f_R(y, x - d)>, keeping only
+cof_c = max_d Vol and cof_d = argmax_d Vol (first maximum on ties; cells with x - d < 0
+have Vol = 0), and the right view's CNN disparity cof_dr(y, xr) = argmax of Vol(y, xr + d, d)
+over d < min(D, W - xr), for GCPs that both views agree on (`gcp.select`). Row y of Vol needs only row y of both descriptor
 images, so both steps run on strips of STRIP_ROWS rows: the activations of a strip stay in
 the CPU caches (measured on a 2-core Zen 4 for a KITTI pair: bf16 convolutions 0.79 s for
 the whole images, 0.54 s in strips of 64 rows) and the descriptors of the whole images are
@@ -168,10 +168,10 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     convolutions ('cnn') and of the correlation ('confidence').
 
     Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1], int32 (H, W)
-    argmax_d Vol, and int32 (H, W) cof_dr, for each right pixel xr the argmax over d of
-    Vol(y, xr + d, d) (first maxima on ties), where Vol(y, x, d) = 0 for x - d < 0. With
-    `volume=True` also the float32 (H, W, max_disp) volume Vol (memory-hungry; for tests
-    and plots).
+    argmax_d Vol, where Vol(y, x, d) = 0 for x - d < 0, and int32 (H, W) cof_dr, for each
+    right pixel xr the argmax of Vol(y, xr + d, d) over d < min(max_disp, W - xr); first
+    maxima on ties. With `volume=True` also the float32 (H, W, max_disp) volume Vol
+    (memory-hungry; for tests and plots).
     """
     lg, rg = gray_pair(left, right)
     h, w = lg.shape

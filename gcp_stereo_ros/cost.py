@@ -2,9 +2,9 @@
 
 A volume has shape (H, W, D) for disparities 0..D-1 and dtype float32: Census distances are
 small integers, exact in float32, and the GCP refinement writes the paper's fractional
-C_low (1.3, 0.001) into the same array, so one dtype serves every stage. Census volumes can
-also be uint16 fixed point, the distances times an integer `scale` (10 makes C_low = 1.3
-the integer 13): SGM runs on those with exact integer arithmetic and half the memory.
+C_low (1.3, 0.001) into the same array. Census volumes can also be uint16 fixed point, the
+distances times an integer `scale` (10 makes C_low = 1.3 the integer 13): SGM runs on those
+with exact integer arithmetic and half the memory.
 
 A cell is valid when the matching window lies inside both images: the left window around
 (x, y) and the right one around (x - d, y). Every other cell gets the cost's maximum
@@ -25,6 +25,7 @@ from .images import gray_pair, standardize
 
 COSTS = ('census', 'sad')
 SAD_MAX = 3.2
+UINT16_MAX = 65535
 
 _ONE = np.uint64(1)
 _M1 = np.uint64(0x5555555555555555)
@@ -89,13 +90,13 @@ def census_transform(gray, window=9):
 
 
 @njit(parallel=True, cache=True)
-def _census_cost(cl, cr, ndisp, rad, scale, invalid, out):
+def _census_cost(cl, cr_rev, ndisp, rad, scale, invalid, out):
+    """`cr_rev`: the right bit strings with each row reversed (see `cost_volume`)."""
     h, w = cl.shape[1], cl.shape[2]
     for y in prange(h):
         row_ok = rad <= y < h - rad
-        # The right row reversed: x - d for d = 0, 1, ... becomes a forward run, which vectorizes.
-        right_lo = cr[0, y, ::-1].copy()
-        right_hi = cr[1, y, ::-1].copy()
+        right_lo = cr_rev[0, y]
+        right_hi = cr_rev[1, y]
         for x in range(w):
             nvalid = min(ndisp, x - rad + 1) if row_ok and rad <= x < w - rad else 0  # d <= x - rad
             lo = cl[0, y, x]
@@ -110,7 +111,8 @@ def _census_cost(cl, cr, ndisp, rad, scale, invalid, out):
 
 
 @njit(parallel=True, cache=True)
-def _sad_cost(left, right, ndisp, rad, scale, invalid, out):
+def _sad_cost(left, right_rev, ndisp, rad, scale, invalid, out):
+    """`right_rev`: the right image with each row reversed (see `cost_volume`)."""
     h, w = left.shape
     area = np.float32((2 * rad + 1) ** 2)
     for y in prange(h):
@@ -119,10 +121,9 @@ def _sad_cost(left, right, ndisp, rad, scale, invalid, out):
             continue
         col = np.zeros((w, ndisp), np.float32)  # column sums of |L - R| over the window rows
         for yy in range(y - rad, y + rad + 1):
-            reversed_right = right[yy, ::-1].copy()  # as in _census_cost
             for x in range(w):
                 lv = left[yy, x]
-                r = reversed_right[w - 1 - x:]  # r[d] = right[yy, x - d]
+                r = right_rev[yy, w - 1 - x:]  # r[d] = right[yy, x - d]
                 c = col[x]
                 for d in range(min(ndisp, x + 1)):
                     c[d] += abs(lv - r[d])
@@ -167,13 +168,14 @@ def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=
     to write the volume into (see `output_array`).
     """
     check_window(cost, window)
-    if not (isinstance(scale, (int, np.integer)) and scale >= 1):
+    if not (isinstance(scale, (int, np.integer)) and not isinstance(scale, bool) and scale >= 1):
         raise ValueError(f'scale must be an integer >= 1, got {scale!r}')
     dtype = np.dtype(dtype)
     if dtype == np.uint16:
-        if cost != 'census' or max_cost(cost, window) * scale > np.iinfo(np.uint16).max:
-            raise ValueError(f'a uint16 volume needs Census costs whose maximum times scale fits '
-                             f'in 16 bits; got {cost}, window {window}, scale {scale}')
+        if cost != 'census':
+            raise ValueError(f'uint16 volumes hold Census costs only (SAD costs are fractional), got {cost!r}')
+        if max_cost(cost, window) * scale > UINT16_MAX:
+            raise ValueError(f'Census costs up to {max_cost(cost, window):g} times scale {scale} do not fit in 16 bits')
     elif dtype != np.float32:
         raise ValueError(f'dtype must be float32 or uint16, got {dtype}')
     lg, rg = gray_pair(left, right)
@@ -181,9 +183,12 @@ def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=
         raise ValueError(f'max_disp must be an integer in [1, image width {lg.shape[1]}], got {max_disp!r}')
     out = output_array(out, lg.shape + (int(max_disp),), dtype)
     invalid = dtype.type(max_cost(cost, window) * scale)
+    # Both kernels read the right rows reversed: at w - 1 - x + d lies the right pixel x - d,
+    # so d = 0, 1, ... is a forward run, and their inner loops vectorize.
     if cost == 'census':
-        _census_cost(census_transform(lg, window), census_transform(rg, window), int(max_disp), window // 2,
-                     int(scale), invalid, out)
+        right_rev = np.ascontiguousarray(census_transform(rg, window)[:, :, ::-1])
+        _census_cost(census_transform(lg, window), right_rev, int(max_disp), window // 2, int(scale), invalid, out)
     else:
-        _sad_cost(standardize(lg), standardize(rg), int(max_disp), window // 2, np.float32(scale), invalid, out)
+        right_rev = np.ascontiguousarray(standardize(rg)[:, ::-1])
+        _sad_cost(standardize(lg), right_rev, int(max_disp), window // 2, np.float32(scale), invalid, out)
     return out

@@ -12,7 +12,7 @@ import numpy as np
 from . import cost as cost_mod
 from .gcp import refine, select
 from .images import gray_pair
-from .sgm import PATHS, UINT16_MAX, aggregate, disparity
+from .sgm import PATHS, aggregate, disparity
 
 # The paper's parameters for each matching cost (Zhong et al., section 4).
 COST_DEFAULTS = {
@@ -86,18 +86,19 @@ class StereoResult:
 
 def fixed_point_scale(cfg):
     """The smallest integer s that makes s * (Census costs, P1, P2, and C_hi, C_low with GCPs)
-    integers whose path sums fit in uint16 (s = 10 for the paper's C_low = 1.3), or None
-    (SAD, or values such as C_low = 1.2345). With an s the pipeline keeps its volumes in
-    uint16: half the memory, faster SGM, exact integer arithmetic; the disparities equal the
-    float32 path's except where float32 rounding of a fractional value breaks a tie.
+    integers whose path sums, at most paths * s * (max cost + P2), fit in uint16 (s = 10 for
+    the paper's C_low = 1.3), or None (SAD, or values such as C_low = 1.2345, which would
+    need s = 2000). With an s the pipeline keeps its volumes in uint16: half the memory,
+    faster SGM, exact integer arithmetic; the disparities equal the float32 path's except
+    where float32 rounding of a fractional value breaks a tie.
     """
     if cfg.cost != 'census':
         return None
     values = (cfg.p1, cfg.p2) + ((cfg.c_hi, cfg.c_low) if cfg.use_gcp else ())
     top = max(cost_mod.max_cost(cfg.cost, cfg.window), cfg.c_hi if cfg.use_gcp else 0)
-    for s in range(1, 1001):
+    for s in range(1, int(cost_mod.UINT16_MAX // (cfg.paths * (top + cfg.p2))) + 1):
         if all(abs(v * s - round(v * s)) <= 1e-9 * max(1.0, v * s) for v in values):
-            return s if cfg.paths * (top + cfg.p2) * s <= UINT16_MAX else None
+            return s
     return None
 
 
@@ -105,7 +106,7 @@ class StereoPipeline:
     """Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
 
     The cost volume and the summed path costs are written into two arrays kept from the
-    previous call of the same size (two fresh (H, W, D) float32 arrays per frame would cost
+    previous call of the same size and type (two fresh (H, W, D) arrays per frame would cost
     a page fault per 4 KiB). So one pipeline serves one thread at a time.
     """
 
@@ -154,6 +155,8 @@ class StereoPipeline:
             confidence = cnn_confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16, seconds=seconds)
             t = time.perf_counter()
         if cfg.use_gcp:
+            if len(confidence) != 3:
+                raise ValueError('confidence must be (cof_c, cof_d, cof_dr), as StereoResult holds them')
             cof_c, cof_d, cof_dr = confidence
         shape = left.shape + (cfg.max_disp,)
         scale = fixed_point_scale(cfg)

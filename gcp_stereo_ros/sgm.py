@@ -21,10 +21,9 @@ import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
 
-from .cost import output_array
+from .cost import UINT16_MAX, output_array
 
 PATHS = (4, 8, 16)
-UINT16_MAX = 65535
 
 
 def directions(paths):
@@ -43,6 +42,7 @@ def directions(paths):
 def _keys(v):
     """v as an array that orders like it and whose min reduction vectorizes: the int32 bits
     of non-negative float32 values (LLVM leaves a float min reduction scalar), else v."""
+    raise NotImplementedError('for numba-compiled code only')
 
 
 @overload(_keys, inline='always')
@@ -54,6 +54,7 @@ def _keys_impl(v):
 
 def _as(like, x):
     """x converted to the element type of the array `like`."""
+    raise NotImplementedError('for numba-compiled code only')
 
 
 @overload(_as, inline='always')

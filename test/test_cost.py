@@ -51,7 +51,7 @@ def test_uint16_census_is_scaled_hamming_distance(motorcycle):
     assert fixed.dtype == np.uint16
     np.testing.assert_array_equal(fixed, vol * 10)
     np.testing.assert_array_equal(cost_volume(left, right, 32, 'census', dtype=np.uint16), vol)
-    with pytest.raises(ValueError, match='16 bits'):
+    with pytest.raises(ValueError, match='Census costs only'):
         cost_volume(left, right, 32, 'sad', dtype=np.uint16)
     with pytest.raises(ValueError, match='16 bits'):
         cost_volume(left, right, 32, 'census', scale=1000, dtype=np.uint16)  # 80000 > 65535

@@ -85,11 +85,14 @@ def test_refinement_of_uint16_volume_needs_integers():
     (dict(c_low=10.0, p2=64.0), 1),  # config/gcp_stereo_tuned.yaml
     (dict(use_gcp=False), 1),
     (dict(c_low=1.25), 4),
-    (dict(c_low=1.2345), None),  # would need 10000: the path sums overflow 16 bits
-    (dict(p2=4000.0), None),  # 16 * (200 + 4000) > 65535
+    (dict(c_low=1.2345), None),  # needs s = 2000: 16 * 2000 * (200 + 128) > 65535
+    (dict(p2=4000.0), None),  # integers, but 16 * (200 + 4000) > 65535
 ])
 def test_fixed_point_scale(overrides, scale):
     assert fixed_point_scale(StereoConfig.for_cost('census', **overrides)) == scale
+
+
+def test_sad_has_no_fixed_point():
     assert fixed_point_scale(StereoConfig.for_cost('sad', p1=1.0, p2=10.0, c_hi=5.0, c_low=1.0)) is None
 
 

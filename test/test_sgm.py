@@ -53,14 +53,13 @@ def test_aggregate_equals_reference(paths, shape, dtype):
 
 
 def test_uint16_sums_up_to_the_limit_are_exact():
-    # 16 * (max cost 1000 + P2 3000) = 64000: path costs and sums reach near 65535 and
-    # P1 = P2 / 2 makes L + P1 large too; any 16-bit wrap-around would show.
-    rng = np.random.default_rng(7)
-    cost = rng.integers(0, 1001, size=(12, 15, 9))
-    cost[3, 4] = 1000
+    # Costs (0, 1000, 1000) everywhere, P1 1500, P2 3000, 16 paths: L_r reaches C + P2 = 4000
+    # on every path inside the image, so S hits the bound 16 * 4000 = 64000 (of 65535), and
+    # L + P1, L + P2 go past 32767 too; any 16-bit wrap-around would show.
+    cost = np.tile(np.array([0, 1000, 1000]), (15, 15, 1))
     got = aggregate(cost.astype(np.uint16), 1500, 3000, 16)
     want = reference_aggregate(cost, 1500, 3000, 16)
-    assert want.max() > 30000
+    assert want.max() == 64000
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(disparity(got), np.argmin(want, axis=2).astype(np.float32))
     with pytest.raises(ValueError, match='overflow'):
