@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from numba import njit, prange
 from torch import nn
 
+from .cost import check_max_disp
 from .images import gray_pair, standardize
 
 PATCH = 9
@@ -151,9 +152,11 @@ def _volume(bits, shift, vol):
                 vol[y, x, d] = _dot(f[0, x], f[1, x - d]) if d <= x else np.float32(0.0)
 
 
-def _check_max_disp(max_disp, width):
-    if not (isinstance(max_disp, (int, np.integer)) and 1 <= max_disp <= width):
-        raise ValueError(f'max_disp must be an integer in [1, image width {width}], got {max_disp!r}')
+def network_input(*grays):
+    """What the branch sees: each gray image standardized on its own, replicate-padded by PAD
+    (so every pixel gets a descriptor), as one float32 batch (N, 1, H + 2 PAD, W + 2 PAD)."""
+    x = torch.from_numpy(np.stack([standardize(g) for g in grays])[:, None])
+    return F.pad(x, (PAD,) * 4, mode='replicate')
 
 
 def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=False, seconds=None):
@@ -175,10 +178,9 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     """
     lg, rg = gray_pair(left, right)
     h, w = lg.shape
-    _check_max_disp(max_disp, w)
+    check_max_disp(max_disp, w)
     max_disp = int(max_disp)
-    x = torch.from_numpy(np.stack([standardize(lg), standardize(rg)])[:, None]).to(device)
-    x = F.pad(x, (PAD,) * 4, mode='replicate')
+    x = network_input(lg, rg).to(device)
     net.to(memory_format=torch.channels_last)  # in place; the 1-channel input alone cannot select it
     cof_c = np.empty((h, w), np.float32)
     cof_d = np.empty((h, w), np.int32)

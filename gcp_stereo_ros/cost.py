@@ -39,6 +39,11 @@ def max_cost(cost, window):
     return float(window * window - 1) if cost == 'census' else SAD_MAX
 
 
+def check_max_disp(max_disp, width):
+    if not (isinstance(max_disp, (int, np.integer)) and 1 <= max_disp <= width):
+        raise ValueError(f'max_disp must be an integer in [1, image width {width}], got {max_disp!r}')
+
+
 def check_window(cost, window):
     if cost not in COSTS:
         raise ValueError(f'cost must be one of {COSTS}, got {cost!r}')
@@ -179,8 +184,7 @@ def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=
     elif dtype != np.float32:
         raise ValueError(f'dtype must be float32 or uint16, got {dtype}')
     lg, rg = gray_pair(left, right)
-    if not (isinstance(max_disp, (int, np.integer)) and 1 <= max_disp <= lg.shape[1]):
-        raise ValueError(f'max_disp must be an integer in [1, image width {lg.shape[1]}], got {max_disp!r}')
+    check_max_disp(max_disp, lg.shape[1])
     out = output_array(out, lg.shape + (int(max_disp),), dtype)
     invalid = dtype.type(max_cost(cost, window) * scale)
     # Both kernels read the right rows reversed: at w - 1 - x + d lies the right pixel x - d,

@@ -18,6 +18,16 @@ def _refine(cost, gcp, cof_d, c_hi, c_low):
                 cost[y, x, :] = c_hi
 
 
+def right_view_agrees(disp, disp_right, tol):
+    """Where the right view confirms the left disparity d = `disp` (H, W): the right
+    disparity `disp_right` at x - round(d) lies within `tol` of d (False where x - round(d)
+    is left of the image)."""
+    w = disp.shape[1]
+    xr = np.arange(w) - np.rint(disp).astype(np.int64)
+    back = np.take_along_axis(disp_right, np.clip(xr, 0, w - 1), axis=1)
+    return (xr >= 0) & (np.abs(back - disp) <= tol)
+
+
 def select(cof_c, cof_d, cof_dr, theta, lr_check=False):
     """GCP mask: pixels whose CNN confidence `cof_c` exceeds `theta` (the paper's rule). With
     `lr_check` also only those whose CNN disparity d the right view confirms: its own CNN
@@ -27,9 +37,7 @@ def select(cof_c, cof_d, cof_dr, theta, lr_check=False):
         raise ValueError(f'cof_c {cof_c.shape}, cof_d {cof_d.shape} and cof_dr {cof_dr.shape} must have one shape')
     gcp = cof_c > theta
     if lr_check:
-        w = cof_d.shape[1]
-        xr = np.clip(np.arange(w) - cof_d, 0, w - 1)
-        gcp &= np.abs(np.take_along_axis(cof_dr, xr, axis=1) - cof_d) <= 1
+        gcp &= right_view_agrees(cof_d, cof_dr, 1)
     return gcp
 
 

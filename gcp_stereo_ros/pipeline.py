@@ -12,7 +12,7 @@ import numpy as np
 from . import cost as cost_mod
 from .gcp import refine, select
 from .images import gray_pair
-from .sgm import PATHS, aggregate, disparity
+from .sgm import PATHS, aggregate, disparity, path_sum_bound
 
 # The paper's parameters for each matching cost (Zhong et al., section 4).
 COST_DEFAULTS = {
@@ -96,7 +96,7 @@ def fixed_point_scale(cfg):
         return None
     values = (cfg.p1, cfg.p2) + ((cfg.c_hi, cfg.c_low) if cfg.use_gcp else ())
     top = max(cost_mod.max_cost(cfg.cost, cfg.window), cfg.c_hi if cfg.use_gcp else 0)
-    for s in range(1, int(cost_mod.UINT16_MAX // (cfg.paths * (top + cfg.p2))) + 1):
+    for s in range(1, int(cost_mod.UINT16_MAX // path_sum_bound(cfg.paths, top, cfg.p2)) + 1):
         if all(abs(v * s - round(v * s)) <= 1e-9 * max(1.0, v * s) for v in values):
             return s
     return None

@@ -39,6 +39,11 @@ def directions(paths):
     return dirs
 
 
+def path_sum_bound(paths, max_cost, p2):
+    """The largest value S can take: each path's L_r <= C + P2."""
+    return paths * (max_cost + p2)
+
+
 def _keys(v):
     """v as an array that orders like it and whose min reduction vectorizes: the int32 bits
     of non-negative float32 values (LLVM leaves a float min reduction scalar), else v."""
@@ -186,7 +191,7 @@ def aggregate(cost, p1, p2, paths=16, out=None):
     if cost.dtype == np.uint16:
         if not (p1.is_integer() and p2.is_integer()):
             raise ValueError(f'a uint16 cost volume needs integer penalties, got P1={p1}, P2={p2}')
-        if paths * (int(top) + p2) > UINT16_MAX:
+        if path_sum_bound(paths, int(top), p2) > UINT16_MAX:
             raise ValueError(f'uint16 path sums would overflow: {paths} paths * (max cost {top} + P2 {p2:g}) '
                              f'> {UINT16_MAX}; use a float32 volume')
     total = output_array(out, cost.shape, cost.dtype)

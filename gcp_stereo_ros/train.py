@@ -44,13 +44,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tqdm import tqdm
 
-from .cnn import PAD, GcpNet, confidence
+from .cnn import PAD, GcpNet, confidence, network_input
 from .datasets import load_frames
-from .gcp import gcp_quality
-from .images import gray_pair, standardize
+from .gcp import gcp_quality, right_view_agrees
+from .images import gray_pair
 
 MARGIN = 0.2
 CROP = (32, 256)  # left pixels per crop (rows, columns)
@@ -68,8 +67,7 @@ class View:
 
 
 def _padded(gray):
-    g = torch.from_numpy(standardize(gray))[None, None]
-    return F.pad(g, (PAD,) * 4, mode='replicate').contiguous(memory_format=torch.channels_last)
+    return network_input(gray).contiguous(memory_format=torch.channels_last)
 
 
 def _view(name, left, right, gt, valid, gt_right):
@@ -77,10 +75,7 @@ def _view(name, left, right, gt, valid, gt_right):
     valid = valid & np.isfinite(gt)
     d = np.where(valid, np.rint(np.nan_to_num(gt)), -1).astype(np.int64)
     if gt_right is not None:  # occluded pixels fail the left-right GT check
-        xr = np.arange(d.shape[1])[None, :] - d
-        inside = valid & (xr >= 0)
-        back = np.take_along_axis(gt_right, np.clip(xr, 0, d.shape[1] - 1), axis=1)
-        valid = inside & (np.abs(back - gt) <= LR_CHECK_PX)
+        valid &= right_view_agrees(np.where(valid, gt, 0), gt_right, LR_CHECK_PX)
         d[~valid] = -1
     return View(name, _padded(lg), _padded(rg), d)
 
