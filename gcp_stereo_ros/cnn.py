@@ -13,8 +13,8 @@ on the CPU L2-normalizes the raw descriptors (float32, or bfloat16 widened exact
 streams the confidence volume Vol(y, x, d) = <f_L(y, x), f_R(y, x - d)>, keeping only
 cof_c = max_d Vol and cof_d = argmax_d Vol (first maximum on ties; cells with x - d < 0
 have Vol = 0), and the right view's CNN disparity cof_dr(y, xr) = argmax of Vol(y, xr + d, d)
-over d < min(D, W - xr), for GCPs that both views agree on (`gcp.select`). Row y of Vol needs only row y of both descriptor
-images, so both steps run on strips of STRIP_ROWS rows: the activations of a strip stay in
+over d < min(D, W - xr), for GCPs that both views agree on (`gcp.select`). Row y of Vol
+needs only row y of both descriptor images, so both steps run on strips of STRIP_ROWS rows: the activations of a strip stay in
 the CPU caches (measured on a 2-core Zen 4 for a KITTI pair: bf16 convolutions 0.79 s for
 the whole images, 0.54 s in strips of 64 rows) and the descriptors of the whole images are
 never held (2 x 119 MB for a KITTI pair in float32).

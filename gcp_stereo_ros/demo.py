@@ -11,14 +11,13 @@ import os
 import shutil
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 from .datasets import load_frame
-from .graph import package_file, private_env, start_node, stop
+from .graph import package_file, peer_graph
 from .metrics import error_rates
 from .viz import colorize, mask_png, save_png
 
@@ -42,15 +41,6 @@ def main(argv=None):
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--out', type=Path, default=Path('out'))
     args = ap.parse_args(argv)
-    os.environ.update(private_env())
-    import rclpy  # after the environment is set: rclpy reads it at init
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
-    from sensor_msgs.msg import Image
-    from stereo_msgs.msg import DisparityImage
-
-    from .rosimage import image_to_array
-
     frames = frames_to_show()
     bags = args.out / 'bags'
     shutil.rmtree(bags, ignore_errors=True)
@@ -58,17 +48,16 @@ def main(argv=None):
         run(['gcp_stereo_ros.bag', 'make', '--dataset', dataset, '--frames', name,
              '--storage', 'mcap', '--out', str(bags / f'frame{i}')])
 
-    node = start_node(os.environ, params_file=package_file('config/gcp_stereo_tuned.yaml'))
-    rclpy.init(args=[])
-    peer = Node('gcp_stereo_demo')
-    got = {'disparity': [], 'gcp_mask': []}
-    peer.create_subscription(DisparityImage, 'disparity', got['disparity'].append, 10)
-    peer.create_subscription(Image, 'gcp_mask', got['gcp_mask'].append, 10)
-    executor = SingleThreadedExecutor()
-    executor.add_node(peer)
-    threading.Thread(target=executor.spin, daemon=True).start()
     rows = []
-    try:
+    with peer_graph('gcp_stereo_demo', params_file=package_file('config/gcp_stereo_tuned.yaml')) as (peer, node):
+        from sensor_msgs.msg import Image
+        from stereo_msgs.msg import DisparityImage
+
+        from .rosimage import image_to_array
+
+        got = {'disparity': [], 'gcp_mask': []}
+        peer.create_subscription(DisparityImage, 'disparity', got['disparity'].append, 10)
+        peer.create_subscription(Image, 'gcp_mask', got['gcp_mask'].append, 10)
         for i, (dataset, name) in enumerate(frames):
             run(['gcp_stereo_ros.bag', 'play', '--in', str(bags / f'frame{i}'), '--wait-subscribers', '60'])
             deadline = time.monotonic() + 120
@@ -85,16 +74,12 @@ def main(argv=None):
             save_png(args.out / f'{stem}_disparity.png', colorize(disp, disp_msg.max_disparity + 1))
             save_png(args.out / f'{stem}_gcp_mask.png', mask_png(gcp))
             rows.append((name, error_rates(disp, frame.gt, frame.valid), 100 * gcp.mean()))
-    finally:
-        executor.shutdown()
-        peer.destroy_node()
-        rclpy.try_shutdown()
-        code = stop(node)
     print(f'\n{"frame":<22}{"bad1":>7}{"bad2":>7}{"bad3":>7}{"bad5":>7}{"mae":>7}{"GCPs %":>8}')
     for name, r, density in rows:
         print(f'{name:<22}' + ''.join(f'{r[k]:7.2f}' for k in ('bad1', 'bad2', 'bad3', 'bad5', 'mae'))
               + f'{density:8.1f}')
-    print(f'(% of ground-truth pixels with error > N px; mae in px)\nPNGs in {args.out}/; node exited with {code}')
+    print('(% of ground-truth pixels with error > N px; mae in px)')
+    print(f'PNGs in {args.out}/; node exited with {node.returncode}')
 
 
 if __name__ == '__main__':

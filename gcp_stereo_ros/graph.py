@@ -1,12 +1,14 @@
 """Starting and stopping the node in a private ROS graph, for the demo and the load run.
 
-No rclpy import here: these only prepare environments and processes.
+rclpy is imported only inside `peer_graph`, after the environment it reads is set.
 """
 import os
 import random
 import signal
 import subprocess
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 SHARE = 'share/gcp_stereo_ros'
@@ -40,6 +42,32 @@ def start_node(env, params=None, params_file=None):
     for name, value in (params or {}).items():
         cmd += ['-p', f'{name}:={value}']
     return subprocess.Popen(cmd, env=env)
+
+
+@contextmanager
+def peer_graph(peer_name, params=None, params_file=None):
+    """Yield (peer, node): the node started as a child process in a private graph (this
+    process's environment becomes `private_env()`, so children such as `gcp-stereo-bag play`
+    join it too) and an rclpy node `peer_name` of ours spinning in a thread. On exit the
+    peer is destroyed and the node stopped with Ctrl-C (`node.returncode` holds its exit code)."""
+    os.environ.update(private_env())
+    import rclpy  # after the environment is set: rclpy reads it at init
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    node = start_node(os.environ, params, params_file)
+    rclpy.init(args=[])  # our argv is not for rcl
+    peer = Node(peer_name)
+    executor = SingleThreadedExecutor()
+    executor.add_node(peer)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    try:
+        yield peer, node
+    finally:
+        executor.shutdown()
+        peer.destroy_node()
+        rclpy.try_shutdown()
+        stop(node)
 
 
 def stop(proc, timeout=10.0):

@@ -7,14 +7,13 @@ disparity (median, max), and the node's RSS over the run (it should stay flat).
 """
 import argparse
 import json
-import os
 import statistics
 import threading
 import time
 from pathlib import Path
 
 from .datasets import list_frames, load_frame
-from .graph import private_env, start_node, stop
+from .graph import peer_graph
 from .messages import stamp_ns
 from .rosimage import array_to_image_fields
 
@@ -40,17 +39,20 @@ def main(argv=None):
 
     frame = load_frame(args.dataset, args.frame or list_frames(args.dataset)[0])
     params = {'max_disparity': frame.max_disp, **dict(p.split(':=', 1) for p in args.param)}
-    os.environ.update(private_env())
-    import rclpy  # after the environment is set: rclpy reads it at init
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
+    with peer_graph('gcp_stereo_load', params) as (peer, node):
+        report = _measure(args, frame, peer, node)
+    for key, value in report.items():
+        print(f'{key:<18} {value}')
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=1))
+
+
+def _measure(args, frame, peer, node):
+    """Warm up, then publish at args.rate for args.seconds; the report (see the module doc)."""
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import Image
     from stereo_msgs.msg import DisparityImage
 
-    node = start_node(os.environ, params)
-    rclpy.init(args=[])  # our argv is not for rcl
-    peer = Node('gcp_stereo_load')
     pubs = [peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data) for s in ('left', 'right')]
     msgs = []
     for image in (frame.left, frame.right):
@@ -66,10 +68,6 @@ def main(argv=None):
                 latency.append(time.monotonic() - sent[stamp])
 
     peer.create_subscription(DisparityImage, 'disparity', on_disparity, 10)
-    executor = SingleThreadedExecutor()
-    executor.add_node(peer)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
 
     def publish(stamp_ns):
         for pub, m in zip(pubs, msgs):
@@ -79,43 +77,33 @@ def main(argv=None):
                 sent[stamp_ns] = time.monotonic()
             pub.publish(m)
 
-    try:
-        # Warm up (subscription matching, Numba and torch first calls) before measuring.
-        deadline = time.monotonic() + 120
-        while not latency and time.monotonic() < deadline:
-            publish(time.time_ns())
-            time.sleep(1.0)
-        if not latency:
-            raise SystemExit('the node produced no disparity within 120 s')
-        with lock:
-            sent.clear()
-            latency.clear()
-        rss = [rss_mb(node.pid)]
-        start = time.monotonic()
-        n = 0
-        while time.monotonic() - start < args.seconds:
-            publish(time.time_ns())
-            n += 1
-            if n % int(args.rate * 10) == 0:
-                rss.append(rss_mb(node.pid))
-            time.sleep(max(0.0, start + n / args.rate - time.monotonic()))
-        time.sleep(3.0)  # let the last frame through
-        rss.append(rss_mb(node.pid))
-    finally:
-        executor.shutdown()
-        peer.destroy_node()
-        rclpy.try_shutdown()
-        stop(node)
-    report = {
+    # Warm up (subscription matching, Numba and torch first calls) before measuring.
+    deadline = time.monotonic() + 120
+    while not latency and time.monotonic() < deadline:
+        publish(time.time_ns())
+        time.sleep(1.0)
+    if not latency:
+        raise SystemExit('the node produced no disparity within 120 s')
+    with lock:
+        sent.clear()
+        latency.clear()
+    rss = [rss_mb(node.pid)]
+    start = time.monotonic()
+    n = 0
+    while time.monotonic() - start < args.seconds:
+        publish(time.time_ns())
+        n += 1
+        if n % int(args.rate * 10) == 0:
+            rss.append(rss_mb(node.pid))
+        time.sleep(max(0.0, start + n / args.rate - time.monotonic()))
+    time.sleep(3.0)  # let the last frame through
+    rss.append(rss_mb(node.pid))
+    return {
         'frame': frame.name, 'size': list(frame.left.shape[:2][::-1]), 'rate_hz': args.rate,
         'seconds': args.seconds, 'pairs_sent': n, 'pairs_processed': len(latency),
         'pairs_dropped': n - len(latency), 'latency_median_s': statistics.median(latency),
         'latency_max_s': max(latency), 'rss_mb': [round(r, 1) for r in rss],
     }
-    for key, value in report.items():
-        print(f'{key:<18} {value}')
-    if args.json:
-        args.json.write_text(json.dumps(report, indent=1))
 
 
 if __name__ == '__main__':

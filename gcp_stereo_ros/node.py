@@ -33,9 +33,9 @@ from .cost import COSTS
 from .params import BY_NAME, NODE_NAME, PARAMS, SYNC_PARAMS, config_from_params, cost_defaults, make_sync
 from .pipeline import StereoPipeline
 from .rosimage import image_to_array
+from .sync import SIDES, other_side
 from .viz import mask_png
 
-SIDES = ('left', 'right')
 STREAK_WARN = 10  # one side arriving this often in a row without its twin -> warning
 ERROR_PERIOD = 5.0  # seconds between two logs of the same error
 
@@ -155,7 +155,7 @@ class GcpStereoNode(Node):
         self._window['received'] += 1
         pair = self._sync.add(side, messages.stamp_ns(msg.header), msg)
         if self._sync.unmatched_streak(side) == STREAK_WARN:
-            other = 'right' if side == 'left' else 'left'
+            other = other_side(side)
             self.get_logger().warn(
                 f'{self._subs[side].topic_name}: {STREAK_WARN} images in a row without a matching '
                 f'{self._subs[other].topic_name} image. Check the stamps and the sync parameters; '

@@ -43,11 +43,11 @@ class PairSync:
 
     def add(self, side, stamp_ns, msg):
         """Queue `msg` of `side`; return (stamp_left_ns, left_msg, right_msg) once paired, else None."""
-        other = _other(side)
+        other = other_side(side)
         if self._last[side] is not None and stamp_ns < self._last[side] - RESTART_NS:
             for s in SIDES:
-                self._drop(s, len(self._stamps[s]))
-                self._stamps[s], self._msgs[s], self._last[s] = [], [], None
+                self._discard_upto(s, math.inf)
+                self._last[s] = None
         if self._last[side] is not None and stamp_ns <= self._last[side]:
             self._drop(side, 1)
             return None
@@ -75,7 +75,7 @@ class PairSync:
 
     def unmatched_streak(self, side):
         """Messages of `side` discarded unpaired since the last pair; growth means its twin goes missing."""
-        _other(side)
+        other_side(side)
         return self._streak[side]
 
     def _discard_upto(self, side, stamp_ns):
@@ -92,7 +92,7 @@ class PairSync:
             self.dropped_right += n
 
 
-def _other(side):
+def other_side(side):
     if side not in SIDES:
         raise ValueError(f"side must be 'left' or 'right', got {side!r}")
     return 'right' if side == 'left' else 'left'
