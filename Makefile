@@ -15,13 +15,13 @@ $(STAMP): requirements.txt setup.py
 	touch $(STAMP)
 
 demo: venv
-	$(PY) -m gcp_stereo_ros.demo --out out
+	$(PY) -m gcp_stereo_ros.tools.demo --out out
 
 test: venv
 	$(PY) -m pytest -q test
 
 bench: venv
-	$(PY) -m gcp_stereo_ros.bench
+	$(PY) -m gcp_stereo_ros.tools.bench
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

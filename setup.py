@@ -28,13 +28,13 @@ setup(
     entry_points={
         'console_scripts': [
             'gcp_stereo_node = gcp_stereo_ros.node:main',
-            'gcp-stereo-eval = gcp_stereo_ros.evaluate:main',
-            'gcp-stereo-bench = gcp_stereo_ros.bench:main',
-            'gcp-stereo-train = gcp_stereo_ros.train:main',
-            'gcp-stereo-plot = gcp_stereo_ros.plot:main',
-            'gcp-stereo-bag = gcp_stereo_ros.bag:main',
-            'gcp-stereo-load = gcp_stereo_ros.load:main',
-            'gcp-stereo-demo = gcp_stereo_ros.demo:main',
+            'gcp-stereo-eval = gcp_stereo_ros.tools.evaluate:main',
+            'gcp-stereo-bench = gcp_stereo_ros.tools.bench:main',
+            'gcp-stereo-train = gcp_stereo_ros.tools.train:main',
+            'gcp-stereo-plot = gcp_stereo_ros.tools.plot:main',
+            'gcp-stereo-bag = gcp_stereo_ros.tools.bag:main',
+            'gcp-stereo-load = gcp_stereo_ros.tools.load:main',
+            'gcp-stereo-demo = gcp_stereo_ros.tools.demo:main',
         ],
     },
 )

@@ -1,11 +1,14 @@
-"""gcp_stereo_ros: CNN ground control points steering semi-global matching, with a ROS 2 node.
+"""gcp_stereo_ros: CNN ground control points steering semi-global matching, as a ROS 2 node.
 
-The algorithm core (images, cost, sgm, cnn, gcp, pipeline, datasets, metrics) never imports
-rclpy; only `node` and the live part of `bag` do.
+Subpackages:
+- `stereo`: the method (costs, SGM, CNN, GCPs, the pipeline); numpy, Numba and torch only.
+- `evaluation`: datasets with ground truth, error rates and pictures; ROS-free.
+- `ros`: the node and its adapters (parameters, messages, images, sync, a private graph).
+- `tools`: the console scripts (`gcp-stereo-eval`, `gcp-stereo-bag`, ...).
+
+The public API is `StereoConfig` and `StereoPipeline`.
 """
 import os
-
-__version__ = '0.1.0'
 
 # torch and Numba each bring an OpenMP runtime; with the default (active) wait policy the
 # idle threads of one spin while the other computes, which made cost and SGM 2-3x slower
@@ -13,3 +16,8 @@ __version__ = '0.1.0'
 # set before torch and Numba load (i.e. when this package is imported first); a value the
 # user already set wins.
 os.environ.setdefault('OMP_WAIT_POLICY', 'PASSIVE')
+
+from .stereo.pipeline import StereoConfig, StereoPipeline  # noqa: E402  (after the policy)
+
+__version__ = '0.1.0'
+__all__ = ['StereoConfig', 'StereoPipeline', '__version__']

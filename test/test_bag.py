@@ -15,13 +15,13 @@ import yaml
 from rosbags.rosbag2 import Reader, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from gcp_stereo_ros import bag
-from gcp_stereo_ros.datasets import load_frame
-from gcp_stereo_ros.graph import start_node, stop
-from gcp_stereo_ros.metrics import error_rates
-from gcp_stereo_ros.params import config_from_params
-from gcp_stereo_ros.pipeline import StereoPipeline
-from gcp_stereo_ros.rosimage import image_to_array
+from gcp_stereo_ros.tools import bag
+from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.ros.graph import start_node, stop
+from gcp_stereo_ros.evaluation.metrics import error_rates
+from gcp_stereo_ros.ros.params import config_from_params
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline
+from gcp_stereo_ros.ros.rosimage import image_to_array
 
 REPO = Path(__file__).resolve().parents[1]
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)  # read back independently of the module under test
@@ -64,8 +64,8 @@ def stamp_of(msg):
 
 
 def cli(*args):
-    """`python -m gcp_stereo_ros.bag ARGS` as a user runs it, in the test's ROS environment."""
-    return subprocess.run([sys.executable, '-m', 'gcp_stereo_ros.bag', *map(str, args)], cwd=REPO, env=os.environ,
+    """`python -m gcp_stereo_ros.tools.bag ARGS` as a user runs it, in the test's ROS environment."""
+    return subprocess.run([sys.executable, '-m', 'gcp_stereo_ros.tools.bag', *map(str, args)], cwd=REPO, env=os.environ,
                           capture_output=True, text=True, timeout=120)
 
 

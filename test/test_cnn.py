@@ -6,11 +6,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gcp_stereo_ros import train
-from gcp_stereo_ros.cnn import DEFAULT_WEIGHTS, STRIP_ROWS, GcpNet, confidence, load_net
-from gcp_stereo_ros.datasets import load_frame
-from gcp_stereo_ros.gcp import gcp_quality, select
-from gcp_stereo_ros.images import gray_pair, standardize
+from gcp_stereo_ros.tools import train
+from gcp_stereo_ros.stereo.cnn import DEFAULT_WEIGHTS, STRIP_ROWS, GcpNet, confidence, load_net
+from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.stereo.gcp import gcp_quality, select
+from gcp_stereo_ros.stereo.images import gray_pair, standardize
 
 # Shipped weights on Motorcycle (never seen in training), measured in fp32: theta 0.95 keeps
 # 64.9% of the valid pixels as GCPs at 96.4% accuracy (|cof_d - gt| <= 3), while plain WTA

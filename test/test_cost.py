@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from skimage import data
 
-from gcp_stereo_ros.cost import SAD_MAX, census_transform, cost_volume
-from gcp_stereo_ros.images import gray_pair, standardize
+from gcp_stereo_ros.stereo.cost import SAD_MAX, census_transform, cost_volume
+from gcp_stereo_ros.stereo.images import gray_pair, standardize
 
 
 @pytest.fixture(scope='module')

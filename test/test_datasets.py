@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from gcp_stereo_ros.datasets import Frame, list_frames, load_frame, load_frames
-from gcp_stereo_ros.images import to_gray
+from gcp_stereo_ros.evaluation.datasets import Frame, list_frames, load_frame, load_frames
+from gcp_stereo_ros.stereo.images import to_gray
 
 # name: (height, width, colour, max_disp, largest GT disparity, valid fraction range)
 EXPECTED = {
@@ -17,6 +17,11 @@ EXPECTED = {
     'middlebury_v2/venus': (383, 434, True, 32, 158 / 8, (0.75, 0.95)),
     'motorcycle': (500, 741, True, 64, None, (0.85, 0.99)),
 }
+# Further shared frames, listed but not loaded here (road scenes and third-size Middlebury).
+KITTI2015 = [f'kitti2015/{i:06d}_10' for i in (*range(1, 41), 45, 62, 146)]
+THIRDSIZE = [f'middlebury2006/thirdsize/{s}' for s in (
+    'Baby1', 'Baby2', 'Baby3', 'Bowling1', 'Bowling2', 'Cloth1', 'Cloth2', 'Cloth4',
+    'Flowerpots', 'Lampshade1', 'Lampshade2', 'Monopoly')]
 
 
 @pytest.fixture(scope='module')
@@ -27,7 +32,7 @@ def frames(data_dir):
 
 
 def test_names(data_dir):
-    assert list_frames(data_dir) == sorted(set(EXPECTED) - {'motorcycle'})
+    assert list_frames(data_dir) == sorted({*EXPECTED, *KITTI2015, *THIRDSIZE} - {'motorcycle'})
     assert list_frames('motorcycle') == ['motorcycle']
     assert list_frames(data_dir / 'kitti2012') == ['kitti2012/000070_10']
     assert list_frames(data_dir / 'kitti2012' / 'training') == ['training/000070_10']

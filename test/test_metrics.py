@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from gcp_stereo_ros.metrics import error_rates
+from gcp_stereo_ros.evaluation.metrics import error_rates
 
 
 def test_hand_made_case():

@@ -15,10 +15,10 @@ from sensor_msgs.msg import Image
 from skimage import data
 from stereo_msgs.msg import DisparityImage
 
-from gcp_stereo_ros.node import GcpStereoNode
-from gcp_stereo_ros.params import config_from_params
-from gcp_stereo_ros.pipeline import StereoPipeline
-from gcp_stereo_ros.rosimage import array_to_image_fields, image_to_array
+from gcp_stereo_ros.ros.node import GcpStereoNode
+from gcp_stereo_ros.ros.params import config_from_params
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline
+from gcp_stereo_ros.ros.rosimage import array_to_image_fields, image_to_array
 
 MAX_DISP = 32
 

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 from skimage import data
 
-from gcp_stereo_ros.evaluate import opencv_sgbm
-from gcp_stereo_ros.gcp import refine, select
-from gcp_stereo_ros.metrics import error_rates
-from gcp_stereo_ros.params import config_from_params, load_params_file
-from gcp_stereo_ros.pipeline import StereoConfig, StereoPipeline, fixed_point_scale
+from gcp_stereo_ros.tools.evaluate import opencv_sgbm
+from gcp_stereo_ros.stereo.gcp import refine, select
+from gcp_stereo_ros.evaluation.metrics import error_rates
+from gcp_stereo_ros.ros.params import config_from_params, load_params_file
+from gcp_stereo_ros.stereo.pipeline import StereoConfig, StereoPipeline, fixed_point_scale
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -109,7 +109,7 @@ def test_fixed_point_pipeline_matches_float32(motorcycle, monkeypatch):
     conf = fixed.cof_c, fixed.cof_d, fixed.cof_dr
     fixed_tuned = tuned(left, right, conf)
     assert paper._workspace['total'].dtype == np.uint16
-    monkeypatch.setattr('gcp_stereo_ros.pipeline.fixed_point_scale', lambda cfg: None)
+    monkeypatch.setattr('gcp_stereo_ros.stereo.pipeline.fixed_point_scale', lambda cfg: None)
     assert (paper(left, right, conf).disparity != fixed.disparity).mean() < 1e-3
     assert paper._workspace['total'].dtype == np.float32
     np.testing.assert_array_equal(tuned(left, right, conf).disparity, fixed_tuned.disparity)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from skimage import data
 
-from gcp_stereo_ros.rosimage import array_to_image_fields, image_to_array
+from gcp_stereo_ros.ros.rosimage import array_to_image_fields, image_to_array
 
 
 @pytest.fixture(scope='module')

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from gcp_stereo_ros.sgm import aggregate, directions, disparity
+from gcp_stereo_ros.stereo.sgm import aggregate, directions, disparity
 
 
 def reference_aggregate(cost, p1, p2, paths):

@@ -1,7 +1,7 @@
 """PairSync: exact and approximate stereo pairing, drops, and the unmatched streak."""
 import pytest
 
-from gcp_stereo_ros.sync import PairSync
+from gcp_stereo_ros.ros.sync import PairSync
 
 MS = 1_000_000  # nanoseconds
 

@@ -43,3 +43,8 @@ def standardize(gray):
     g = np.asarray(gray, dtype=np.float32)
     std = float(g.std())
     return (g - float(g.mean())) / (std if std > 1e-6 else 1.0)
+
+
+def mask_image(mask):
+    """Boolean mask as a uint8 0/255 image (mono8, PNG)."""
+    return np.asarray(mask, dtype=bool).astype(np.uint8) * 255

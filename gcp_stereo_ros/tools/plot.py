@@ -15,9 +15,9 @@ import matplotlib
 import numpy as np
 
 from .evaluate import Runner, method_config, parse_overrides, select_frames
-from .datasets import load_frame
-from .gcp import gcp_quality
-from .metrics import error_rates
+from ..evaluation.datasets import load_frame
+from ..stereo.gcp import gcp_quality
+from ..evaluation.metrics import error_rates
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)

@@ -43,14 +43,15 @@ from rosbags.rosbag2.errors import WriterError
 from rosbags.typesys import Stores, TypesysError, get_typestore
 from tqdm import tqdm
 
-from . import messages
-from .datasets import list_frames, load_frames
-from .metrics import THRESHOLDS, error_rates
-from .params import config_from_params, load_params_file, make_sync
-from .pipeline import StereoPipeline
-from .rosimage import image_to_array
-from .sync import SIDES
-from .viz import colorize, mask_png, save_png
+from ..ros import messages
+from ..evaluation.datasets import list_frames, load_frames
+from ..evaluation.metrics import THRESHOLDS, error_rates
+from ..ros.params import config_from_params, load_params_file, make_sync
+from ..stereo.pipeline import StereoPipeline
+from ..ros.rosimage import image_to_array
+from ..ros.sync import SIDES
+from ..evaluation.viz import colorize, save_png
+from ..stereo.images import mask_image
 
 PROG = 'gcp-stereo-bag'
 IMAGE, INFO, STRING = 'sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'std_msgs/msg/String'
@@ -173,7 +174,7 @@ def frame_messages(frame, stamp_ns):
         msgs['gt/frame_name'] = TYPES.String(data=frame.name)
         msgs['gt/disparity'] = messages.image_message(TYPES, headers['left'], np.where(known, frame.gt, 0),
                                                       '32FC1')
-        msgs['gt/valid'] = messages.image_message(TYPES, headers['left'], mask_png(valid), 'mono8')
+        msgs['gt/valid'] = messages.image_message(TYPES, headers['left'], mask_image(valid), 'mono8')
     for side in SIDES:
         msgs[f'{side}/camera_info'] = camera_info(headers[side], frame, side)
     for side in SIDES:
@@ -257,7 +258,7 @@ class Runner:
         geom = messages.geometry(self.info['left'], self.info['right'])
         out = {'disparity': messages.disparity_message(TYPES, header, result.disparity, config, geom)}
         if result.gcp is not None:
-            out['gcp_mask'] = messages.image_message(TYPES, header, mask_png(result.gcp), 'mono8')
+            out['gcp_mask'] = messages.image_message(TYPES, header, mask_image(result.gcp), 'mono8')
             out['confidence'] = messages.image_message(TYPES, header, result.cof_c, '32FC1')
         for name, msg in out.items():
             self.writer.write(self.conns[name], timestamp, TYPESTORE.serialize_cdr(msg, OUTPUTS[name]))
@@ -275,7 +276,7 @@ class Runner:
             stem = Path(self.png_dir) / label.replace('/', '_')
             save_png(f'{stem}_disparity.png', colorize(result.disparity, config.max_disp))
             if result.gcp is not None:
-                save_png(f'{stem}_gcp_mask.png', mask_png(result.gcp))
+                save_png(f'{stem}_gcp_mask.png', mask_image(result.gcp))
 
 
 def run(args):

@@ -17,7 +17,7 @@ SHARE = 'share/gcp_stereo_ros'
 def package_file(relative):
     """A file shipped under config/ or launch/: from the source tree (editable install) or
     from <prefix>/share/gcp_stereo_ros (pip wheel, colcon install)."""
-    here = Path(__file__).resolve().parent
+    here = Path(__file__).resolve().parents[1]  # the gcp_stereo_ros package
     for root in (here.parent, *(p / SHARE for p in here.parents), Path(sys.prefix) / SHARE):
         if (root / relative).is_file():
             return root / relative

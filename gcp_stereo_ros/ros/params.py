@@ -8,7 +8,7 @@ from pathlib import Path
 
 import yaml
 
-from .pipeline import COST_DEFAULTS, StereoConfig
+from ..stereo.pipeline import COST_DEFAULTS, StereoConfig
 from .sync import PairSync
 
 NODE_NAME = 'gcp_stereo_node'

@@ -14,11 +14,11 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from .datasets import list_frames, load_frame
-from .images import gray_pair
-from .metrics import error_rates
-from .pipeline import StereoConfig, StereoPipeline
-from .viz import colorize, save_png
+from ..evaluation.datasets import list_frames, load_frame
+from ..stereo.images import gray_pair
+from ..evaluation.metrics import error_rates
+from ..stereo.pipeline import StereoConfig, StereoPipeline
+from ..evaluation.viz import colorize, save_png
 
 METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
 
@@ -71,7 +71,7 @@ class Runner:
         if method == 'opencv-sgbm':
             return opencv_sgbm(left, right, max_disp), None, time.perf_counter() - t
         if method == 'cnn':  # winner-takes-all of the CNN confidence volume alone
-            from .cnn import confidence
+            from ..stereo.cnn import confidence
             pipe = self.pipeline('census+gcp', max_disp)
             cfg = pipe.config
             _, cof_d, _ = confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16)

@@ -12,10 +12,10 @@ import threading
 import time
 from pathlib import Path
 
-from .datasets import list_frames, load_frame
-from .graph import peer_graph
-from .messages import stamp_ns
-from .rosimage import array_to_image_fields
+from ..evaluation.datasets import list_frames, load_frame
+from ..ros.graph import peer_graph
+from ..ros.messages import stamp_ns
+from ..ros.rosimage import array_to_image_fields
 
 
 def rss_mb(pid):

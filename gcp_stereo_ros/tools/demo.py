@@ -16,10 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .datasets import load_frame
-from .graph import package_file, peer_graph
-from .metrics import error_rates
-from .viz import colorize, mask_png, save_png
+from ..evaluation.datasets import load_frame
+from ..ros.graph import package_file, peer_graph
+from ..evaluation.metrics import error_rates
+from ..evaluation.viz import colorize, save_png
+from ..stereo.images import mask_image
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 
@@ -45,7 +46,7 @@ def main(argv=None):
     bags = args.out / 'bags'
     shutil.rmtree(bags, ignore_errors=True)
     for i, (dataset, name) in enumerate(frames):
-        run(['gcp_stereo_ros.bag', 'make', '--dataset', dataset, '--frames', name,
+        run(['gcp_stereo_ros.tools.bag', 'make', '--dataset', dataset, '--frames', name,
              '--storage', 'mcap', '--out', str(bags / f'frame{i}')])
 
     rows = []
@@ -53,13 +54,13 @@ def main(argv=None):
         from sensor_msgs.msg import Image
         from stereo_msgs.msg import DisparityImage
 
-        from .rosimage import image_to_array
+        from ..ros.rosimage import image_to_array
 
         got = {'disparity': [], 'gcp_mask': []}
         peer.create_subscription(DisparityImage, 'disparity', got['disparity'].append, 10)
         peer.create_subscription(Image, 'gcp_mask', got['gcp_mask'].append, 10)
         for i, (dataset, name) in enumerate(frames):
-            run(['gcp_stereo_ros.bag', 'play', '--in', str(bags / f'frame{i}'), '--wait-subscribers', '60'])
+            run(['gcp_stereo_ros.tools.bag', 'play', '--in', str(bags / f'frame{i}'), '--wait-subscribers', '60'])
             deadline = time.monotonic() + 120
             while min(len(v) for v in got.values()) <= i:
                 if time.monotonic() > deadline or node.poll() is not None:
@@ -72,7 +73,7 @@ def main(argv=None):
             gcp = image_to_array(got['gcp_mask'][i]) > 0
             stem = name.replace('/', '_')
             save_png(args.out / f'{stem}_disparity.png', colorize(disp, disp_msg.max_disparity + 1))
-            save_png(args.out / f'{stem}_gcp_mask.png', mask_png(gcp))
+            save_png(args.out / f'{stem}_gcp_mask.png', mask_image(gcp))
             rows.append((name, error_rates(disp, frame.gt, frame.valid), 100 * gcp.mean()))
     print(f'\n{"frame":<22}{"bad1":>7}{"bad2":>7}{"bad3":>7}{"bad5":>7}{"mae":>7}{"GCPs %":>8}')
     for name, r, density in rows:

@@ -19,11 +19,6 @@ def colorize(disp, max_disp):
     return image
 
 
-def mask_png(mask):
-    """Boolean mask as uint8 0/255."""
-    return np.asarray(mask, dtype=bool).astype(np.uint8) * 255
-
-
 def save_png(path, image):
     """Write `image` (gray or BGR, OpenCV order) to `path`, creating parent folders."""
     path = Path(path)

@@ -15,12 +15,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .cost import cost_volume
-from .datasets import list_frames, load_frame
+from ..stereo.cost import cost_volume
+from ..evaluation.datasets import list_frames, load_frame
 from .evaluate import opencv_sgbm
-from .images import gray_pair
-from .pipeline import StereoConfig, StereoPipeline
-from .sgm import aggregate
+from ..stereo.images import gray_pair
+from ..stereo.pipeline import StereoConfig, StereoPipeline
+from ..stereo.sgm import aggregate
 
 KITTI_SIZE = (1242, 375)
 

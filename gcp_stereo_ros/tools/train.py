@@ -1,4 +1,4 @@
-"""Train the Siamese GCP CNN (`gcp_stereo_ros.cnn.GcpNet`) with the paper's hinge loss.
+"""Train the Siamese GCP CNN (`gcp_stereo_ros.stereo.cnn.GcpNet`) with the paper's hinge loss.
 
 For every left pixel (x, y) with known, non-occluded disparity d (rounded to an integer),
 one positive right patch at x - d + o_pos, o_pos uniform in {-1, 0, 1}, and one negative at
@@ -24,7 +24,7 @@ Fixed data split of the shipped weights (`gcp_stereo_ros/weights/gcp_cnn.pt`):
   validate: middlebury_v2/cones (the same scene as middlebury2003/cones, so never train on that)
   never seen: Middlebury 2014 Motorcycle (source `motorcycle`), kitti2012/000070_10.
 They came from (15 min on 2 shared cores; the command is also in the weights' meta):
-  python -m gcp_stereo_ros.train --dataset ../shared/data --frames middlebury_v2/tsukuba
+  python -m gcp_stereo_ros.tools.train --dataset ../shared/data --frames middlebury_v2/tsukuba
     middlebury_v2/venus middlebury_v2/teddy middlebury2006/halfsize/Cloth3
     middlebury2006/fullsize_opencv-doc/Aloe --val-frames middlebury_v2/cones
     --val-thetas 0.9 0.95 0.98 0.99 --epochs 8 --samples-per-epoch 768 --batch-size 4
@@ -46,10 +46,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .cnn import PAD, GcpNet, confidence, network_input
-from .datasets import load_frames
-from .gcp import gcp_quality, right_view_agrees
-from .images import gray_pair
+from ..stereo.cnn import PAD, GcpNet, confidence, network_input
+from ..evaluation.datasets import load_frames
+from ..stereo.gcp import gcp_quality, right_view_agrees
+from ..stereo.images import gray_pair
 
 MARGIN = 0.2
 CROP = (32, 256)  # left pixels per crop (rows, columns)

@@ -36,7 +36,7 @@ FEATURES = 64
 PAD = PATCH // 2
 EPS = 1e-8
 STRIP_ROWS = 64
-DEFAULT_WEIGHTS = Path(__file__).parent / 'weights' / 'gcp_cnn.pt'
+DEFAULT_WEIGHTS = Path(__file__).parents[1] / 'weights' / 'gcp_cnn.pt'
 
 
 class GcpNet(nn.Module):
@@ -64,7 +64,7 @@ class GcpNet(nn.Module):
 def load_net(path=None, device='cpu'):
     """GcpNet in eval mode with the weights at `path` (default: the shipped weights).
 
-    The file holds {'state_dict': ..., 'meta': {...}} (see `gcp_stereo_ros.train`).
+    The file holds {'state_dict': ..., 'meta': {...}} (see `gcp_stereo_ros.tools.train`).
     Raises FileNotFoundError if it does not exist, ValueError if it cannot be read as such.
     """
     path = Path(DEFAULT_WEIGHTS if path is None else path)

@@ -1,0 +1,1 @@
+"""The console scripts, each also `python -m gcp_stereo_ros.tools.<name>`."""
