@@ -1,4 +1,5 @@
-"""gcp_stereo_ros: CNN ground control points steering semi-global matching, as a ROS 2 node.
+"""
+gcp_stereo_ros: CNN ground control points steering semi-global matching, as a ROS 2 node.
 
 Subpackages:
 - `stereo`: the method (costs, SGM, CNN, GCPs, the pipeline); numpy, Numba and torch only.

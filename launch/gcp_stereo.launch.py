@@ -1,4 +1,5 @@
-"""Launch gcp_stereo_node with the paper's parameters and the large-image Fast DDS profile.
+"""
+Launch gcp_stereo_node with the paper's parameters and the large-image Fast DDS profile.
 
     ros2 launch gcp_stereo_ros gcp_stereo.launch.py namespace:=stereo
 
@@ -18,8 +19,10 @@ def generate_launch_description():
     share = get_package_share_directory('gcp_stereo_ros')
     return LaunchDescription([
         DeclareLaunchArgument('namespace', default_value=''),
-        DeclareLaunchArgument('params_file', default_value=os.path.join(share, 'config', 'gcp_stereo.yaml')),
-        SetEnvironmentVariable('FASTRTPS_DEFAULT_PROFILES_FILE', os.path.join(share, 'config', 'fastdds.xml')),
+        DeclareLaunchArgument(
+            'params_file', default_value=os.path.join(share, 'config', 'gcp_stereo.yaml')),
+        SetEnvironmentVariable(
+            'FASTRTPS_DEFAULT_PROFILES_FILE', os.path.join(share, 'config', 'fastdds.xml')),
         Node(
             package='gcp_stereo_ros',
             executable='gcp_stereo_node',

@@ -2,9 +2,8 @@
 import os
 from pathlib import Path
 
-import pytest
-
 from gcp_stereo_ros.ros.graph import private_env
+import pytest
 
 # Every test process gets its own DDS domain on loopback only, so parallel runs never
 # cross-talk; the shipped Fast DDS profile lets large images through shared memory.

@@ -1,27 +1,30 @@
-"""gcp-stereo-bag on real data: make -> run round trips, bad input bags, play into live subscribers."""
+"""
+gcp-stereo-bag on real data.
+
+make -> run round trips, bad input bags, play into live subscribers.
+"""
 import contextlib
 import io
 import os
+from pathlib import Path
 import shutil
 import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
+from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.evaluation.metrics import error_rates
+from gcp_stereo_ros.ros.graph import start_node, stop
+from gcp_stereo_ros.ros.params import config_from_params
+from gcp_stereo_ros.ros.rosimage import image_to_array
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline
+from gcp_stereo_ros.tools import bag
 import numpy as np
 import pytest
-import yaml
 from rosbags.rosbag2 import Reader, Writer
-from rosbags.typesys import Stores, get_typestore
-
-from gcp_stereo_ros.tools import bag
-from gcp_stereo_ros.evaluation.datasets import load_frame
-from gcp_stereo_ros.ros.graph import start_node, stop
-from gcp_stereo_ros.evaluation.metrics import error_rates
-from gcp_stereo_ros.ros.params import config_from_params
-from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from gcp_stereo_ros.ros.rosimage import image_to_array
+from rosbags.typesys import get_typestore, Stores
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)  # read back independently of the module under test
@@ -55,7 +58,8 @@ def read_bag(path):
     with Reader(path) as reader:
         conns = {c.topic: c for c in reader.connections}
         for conn, timestamp, raw in reader.messages():
-            msgs.setdefault(conn.topic, []).append((timestamp, TYPESTORE.deserialize_cdr(raw, conn.msgtype)))
+            msgs.setdefault(conn.topic, []).append(
+                (timestamp, TYPESTORE.deserialize_cdr(raw, conn.msgtype)))
     return msgs, conns
 
 
@@ -64,19 +68,26 @@ def stamp_of(msg):
 
 
 def cli(*args):
-    """`python -m gcp_stereo_ros.tools.bag ARGS` as a user runs it, in the test's ROS environment."""
-    return subprocess.run([sys.executable, '-m', 'gcp_stereo_ros.tools.bag', *map(str, args)], cwd=REPO, env=os.environ,
-                          capture_output=True, text=True, timeout=120)
+    """
+    Run `python -m gcp_stereo_ros.tools.bag ARGS` as a user runs it.
+
+    It runs in the test's ROS environment.
+    """
+    return subprocess.run(
+        [sys.executable, '-m', 'gcp_stereo_ros.tools.bag', *map(str, args)],
+        cwd=REPO, env=os.environ, capture_output=True, text=True, timeout=120)
 
 
 def test_make_writes_the_node_inputs_and_ground_truth(tmp_path, data_dir):
     names = ['kitti2012/000070_10', 'middlebury_v2/venus']
     out = tmp_path / 'in_bag'
-    assert bag.main(['make', '--dataset', str(data_dir), '--frames', *names, '--storage', 'sqlite3',
-                     '--out', str(out), '--rate', '20', '--namespace', 'stereo']) == 0
+    assert bag.main(['make', '--dataset', str(data_dir), '--frames', *names,
+                     '--storage', 'sqlite3', '--out', str(out), '--rate', '20',
+                     '--namespace', 'stereo']) == 0
     msgs, conns = read_bag(out)
-    assert set(conns) == {f'/stereo/{t}' for t in ('left/image_rect', 'right/image_rect', 'left/camera_info',
-                                                    'right/camera_info', 'gt/disparity', 'gt/valid', 'gt/frame_name')}
+    assert set(conns) == {
+        f'/stereo/{t}' for t in ('left/image_rect', 'right/image_rect', 'left/camera_info',
+                                 'right/camera_info', 'gt/disparity', 'gt/valid', 'gt/frame_name')}
     for topic in ('/stereo/left/image_rect', '/stereo/right/camera_info'):
         qos, = conns[topic].ext.offered_qos_profiles
         assert (qos.reliability.name, qos.durability.name, qos.history.name, qos.depth) == \
@@ -88,7 +99,8 @@ def test_make_writes_the_node_inputs_and_ground_truth(tmp_path, data_dir):
         frame = load_frame(data_dir, name)
         for side in ('left', 'right'):
             timestamp, image = msgs[f'/stereo/{side}/image_rect'][i]
-            assert timestamp == stamp_of(image) == stamps[i] and image.header.frame_id == f'{side}_camera'
+            assert timestamp == stamp_of(image) == stamps[i]
+            assert image.header.frame_id == f'{side}_camera'
             assert image.encoding == ('rgb8' if frame.left.ndim == 3 else 'mono8')
             np.testing.assert_array_equal(image_to_array(image), getattr(frame, side))
         gt = image_to_array(msgs['/stereo/gt/disparity'][i][1])
@@ -108,7 +120,11 @@ def test_make_writes_the_node_inputs_and_ground_truth(tmp_path, data_dir):
 
 @pytest.fixture(scope='module')
 def round_trip(tmp_path_factory, params_file):
-    """(storage, dataset, frame names) -> (input bag, output bag, stdout of run): make, then run."""
+    """
+    Map (storage, dataset, frame names) -> (input bag, output bag, stdout of run).
+
+    Make, then run.
+    """
     cache = {}
 
     def get(storage, dataset, names):
@@ -116,12 +132,13 @@ def round_trip(tmp_path_factory, params_file):
         if key not in cache:
             folder = tmp_path_factory.mktemp(storage)
             bag_in, bag_out = folder / 'in', folder / 'out'
-            assert bag.main(['make', '--dataset', dataset, '--frames', *names, '--storage', storage,
-                             '--out', str(bag_in)]) == 0
+            assert bag.main(['make', '--dataset', dataset, '--frames', *names,
+                             '--storage', storage, '--out', str(bag_in)]) == 0
             stdout = io.StringIO()
             with contextlib.redirect_stdout(stdout):
-                assert bag.main(['run', '--in', str(bag_in), '--out', str(bag_out), '--params', str(params_file),
-                                 '--png', str(folder / 'png'), '--storage', storage]) == 0
+                assert bag.main(['run', '--in', str(bag_in), '--out', str(bag_out),
+                                 '--params', str(params_file), '--png', str(folder / 'png'),
+                                 '--storage', storage]) == 0
             cache[key] = bag_in, bag_out, stdout.getvalue()
         return cache[key]
     return get
@@ -132,7 +149,8 @@ def round_trip(tmp_path_factory, params_file):
     ('mcap', 'motorcycle', ['motorcycle']),
     ('mcap', 'shared', ['middlebury_v2/cones']),
 ])
-def test_run_gives_the_node_outputs_and_scores(data_dir, round_trip, expected, storage, dataset, names):
+def test_run_gives_the_node_outputs_and_scores(data_dir, round_trip, expected,
+                                               storage, dataset, names):
     dataset = str(data_dir) if dataset == 'shared' else dataset
     bag_in, bag_out, stdout = round_trip(storage, dataset, names)
     lines = stdout.splitlines()
@@ -144,9 +162,11 @@ def test_run_gives_the_node_outputs_and_scores(data_dir, round_trip, expected, s
     for i, name in enumerate(names):
         frame, result = expected(dataset, name)
         left = inputs['/left/image_rect'][i][1]
-        disp_msg, gcp_msg, conf_msg = (outputs[t][i][1] for t in ('/disparity', '/gcp_mask', '/confidence'))
+        disp_msg, gcp_msg, conf_msg = (
+            outputs[t][i][1] for t in ('/disparity', '/gcp_mask', '/confidence'))
         for msg in (disp_msg, gcp_msg, conf_msg):
-            assert stamp_of(msg) == stamp_of(left) and msg.header.frame_id == left.header.frame_id == 'left_camera'
+            assert stamp_of(msg) == stamp_of(left)
+            assert msg.header.frame_id == left.header.frame_id == 'left_camera'
         want = np.where(np.isnan(result.disparity), -1, result.disparity)
         np.testing.assert_array_equal(image_to_array(disp_msg.image), want)
         assert disp_msg.max_disparity == PARAMS['max_disparity'] - 1 and disp_msg.f == 0
@@ -156,15 +176,17 @@ def test_run_gives_the_node_outputs_and_scores(data_dir, round_trip, expected, s
         rates = error_rates(result.disparity, frame.gt, frame.valid)
         assert rows[name] == [f'{rates[k]:.2f}' for k in ('bad1', 'bad2', 'bad3', 'bad5', 'mae')]
         stem = name.replace('/', '_')
-        assert {p.name for p in (bag_out.parent / 'png').iterdir()} == {f'{stem}_disparity.png', f'{stem}_gcp_mask.png'}
+        assert {p.name for p in (bag_out.parent / 'png').iterdir()} == {
+            f'{stem}_disparity.png', f'{stem}_gcp_mask.png'}
     assert 'mean' in rows
     for topic in inputs:  # the input is copied unchanged
         assert [t for t, _ in outputs[topic]] == [t for t, _ in inputs[topic]]
-    assert sorted(p.name for p in bag_out.parent.iterdir()) == ['in', 'out', 'png']  # no staging left
+    # no staging left
+    assert sorted(p.name for p in bag_out.parent.iterdir()) == ['in', 'out', 'png']
 
 
 def write_bag(path, topics, storage='sqlite3'):
-    """A bag of {topic: (msgtype, [(timestamp, message)])}, written with rosbags directly."""
+    """Write a bag of {topic: (msgtype, [(timestamp, message)])} with rosbags directly."""
     with Writer(path, version=9, storage_plugin=bag.StoragePlugin[storage.upper()]) as writer:
         for topic, (msgtype, msgs) in topics.items():
             conn = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
@@ -179,8 +201,9 @@ def string_msg(text):
 def image_msg(stamp, encoding, size=(80, 60)):
     w, h = size
     header = bag._header(stamp, 'left_camera')
-    return TYPESTORE.types[bag.IMAGE](header=header, height=h, width=w, encoding=encoding, is_bigendian=0,
-                                      step=w * 3, data=np.zeros(w * h * 3, np.uint8))
+    return TYPESTORE.types[bag.IMAGE](header=header, height=h, width=w, encoding=encoding,
+                                      is_bigendian=0, step=w * 3,
+                                      data=np.zeros(w * h * 3, np.uint8))
 
 
 def bad_bags(tmp_path):
@@ -188,7 +211,8 @@ def bad_bags(tmp_path):
     bags = {}
     for storage in ('sqlite3', 'mcap'):
         good = tmp_path / f'good_{storage}'
-        assert bag.main(['make', '--dataset', 'motorcycle', '--storage', storage, '--out', str(good)]) == 0
+        assert bag.main(['make', '--dataset', 'motorcycle', '--storage', storage,
+                         '--out', str(good)]) == 0
         cut = bags[f'truncated {storage}'] = tmp_path / f'truncated_{storage}'
         shutil.copytree(good, cut)
         data, = (p for p in cut.iterdir() if p.suffix in ('.db3', '.mcap'))
@@ -200,12 +224,14 @@ def bad_bags(tmp_path):
     bags['no image topics'] = tmp_path / 'chatter'
     write_bag(bags['no image topics'], {'/chatter': (bag.STRING, [(1, string_msg('hello'))])})
     bags['wrong image type'] = tmp_path / 'strings'
-    write_bag(bags['wrong image type'], {'/left/image_rect': (bag.STRING, [(1, string_msg('left'))]),
-                                         '/right/image_rect': (bag.STRING, [(1, string_msg('right'))])})
+    write_bag(bags['wrong image type'], {
+        '/left/image_rect': (bag.STRING, [(1, string_msg('left'))]),
+        '/right/image_rect': (bag.STRING, [(1, string_msg('right'))])})
     # The first pair is processed and written; the second fails: no half-written output either.
     bags['bad second pair'] = tmp_path / 'bad_second'
     write_bag(bags['bad second pair'], {
-        f'/{side}/image_rect': (bag.IMAGE, [(1, image_msg(1, 'rgb8')), (2, image_msg(2, 'yuv422'))])
+        f'/{side}/image_rect': (
+            bag.IMAGE, [(1, image_msg(1, 'rgb8')), (2, image_msg(2, 'yuv422'))])
         for side in ('left', 'right')})
     return bags
 
@@ -224,7 +250,8 @@ def test_bad_input_bags_are_refused_without_output(tmp_path, params_file, capsys
     capsys.readouterr()
     for case, path in bags.items():
         out = tmp_path / f'out_{path.name}'
-        assert bag.main(['run', '--in', str(path), '--out', str(out), '--params', str(params_file)]) != 0, case
+        assert bag.main(['run', '--in', str(path), '--out', str(out),
+                         '--params', str(params_file)]) != 0, case
         err = capsys.readouterr().err.strip().splitlines()[-1]
         assert err.startswith('gcp-stereo-bag run: error: ') and REASONS[case] in err, (case, err)
         assert err.endswith(f'{out} not written'), err
@@ -242,9 +269,11 @@ def test_existing_output_needs_force(tmp_path, capsys):
     (out / 'keep').write_text('mine')
     make = ['make', '--dataset', 'motorcycle', '--out', str(out)]
     assert bag.main(make) == 1
-    assert 'exists; pass --force' in capsys.readouterr().err and (out / 'keep').read_text() == 'mine'
+    assert 'exists; pass --force' in capsys.readouterr().err
+    assert (out / 'keep').read_text() == 'mine'
     assert bag.main(make + ['--force']) == 0
-    assert not (out / 'keep').exists() and read_bag(out)[0]['/gt/frame_name'][0][1].data == 'motorcycle'
+    assert not (out / 'keep').exists()
+    assert read_bag(out)[0]['/gt/frame_name'][0][1].data == 'motorcycle'
 
 
 # ---- play -------------------------------------------------------------------------------
@@ -264,11 +293,14 @@ class Listener:
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         self.node = rclpy.create_node(name)
         self.got = {topic: [] for topic in topics}
-        best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)  # matches any publisher
-        rosout = QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL)  # also what came before
+        # matches any publisher
+        best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+        # also what came before
+        rosout = QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         for topic, cls in topics.items():
-            self.node.create_subscription(cls, topic, lambda m, t=topic: self.got[t].append((time.monotonic(), m)),
-                                          rosout if topic == '/rosout' else best_effort)
+            self.node.create_subscription(
+                cls, topic, lambda m, t=topic: self.got[t].append((time.monotonic(), m)),
+                rosout if topic == '/rosout' else best_effort)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
@@ -291,16 +323,20 @@ class Listener:
 
 def test_play_publishes_every_image_in_order(tmp_path, data_dir, ros):
     from sensor_msgs.msg import CameraInfo, Image
-    names = ['middlebury_v2/cones', 'kitti2012/000070_10', 'middlebury2006/halfsize/Cloth3']  # rgb8, mono8, 1 MB
+    # rgb8, mono8, 1 MB
+    names = ['middlebury_v2/cones', 'kitti2012/000070_10', 'middlebury2006/halfsize/Cloth3']
     bag_path = tmp_path / 'bag'
-    assert bag.main(['make', '--dataset', str(data_dir), '--frames', *names, '--out', str(bag_path)]) == 0
+    assert bag.main(['make', '--dataset', str(data_dir), '--frames', *names,
+                     '--out', str(bag_path)]) == 0
     recorded, _ = read_bag(bag_path)
     listener = Listener(ros, 'test_bag_play_listener',
-                        {'/left/image_rect': Image, '/right/image_rect': Image, '/right/camera_info': CameraInfo})
+                        {'/left/image_rect': Image, '/right/image_rect': Image,
+                         '/right/camera_info': CameraInfo})
     try:
         proc = cli('play', '--in', bag_path, '--rate', 0.5, '--wait-subscribers', 20)
         assert proc.returncode == 0 and 'no subscriber' not in proc.stderr, proc.stderr
-        listener.wait(lambda: min(listener.counts().values()) == len(names), 'every message', timeout=10)
+        listener.wait(lambda: min(listener.counts().values()) == len(names), 'every message',
+                      timeout=10)
     finally:
         listener.close()
     for topic, got in listener.got.items():
@@ -313,7 +349,8 @@ def test_play_publishes_every_image_in_order(tmp_path, data_dir, ros):
         else:
             assert [list(m.p) for _, m in got] == [w.p.tolist() for w in want]
     arrivals = [t for t, _ in listener.got['/left/image_rect']]
-    assert arrivals[-1] - arrivals[0] > 0.3  # 2 periods of 0.1 s recorded, played at half speed: 0.4 s
+    # 2 periods of 0.1 s recorded, played at half speed: 0.4 s
+    assert arrivals[-1] - arrivals[0] > 0.3
 
 
 def test_play_into_the_node_gives_what_run_gives(data_dir, params_file, round_trip, ros):
@@ -327,10 +364,12 @@ def test_play_into_the_node_gives_what_run_gives(data_dir, params_file, round_tr
     node = start_node(os.environ, params_file=params_file)
     try:
         # into the running node, as a user would
-        listener.wait(lambda: any(m.msg.startswith('ready') for _, m in listener.got['/rosout']), 'the node', 60)
+        listener.wait(lambda: any(m.msg.startswith('ready') for _, m in listener.got['/rosout']),
+                      'the node', 60)
         proc = cli('play', '--in', bag_in, '--wait-subscribers', 10)
         assert proc.returncode == 0 and 'no subscriber' not in proc.stderr, proc.stderr
-        listener.wait(lambda: listener.got['/disparity'] and listener.got['/gcp_mask'], 'the outputs', timeout=30)
+        listener.wait(lambda: listener.got['/disparity'] and listener.got['/gcp_mask'],
+                      'the outputs', timeout=30)
     finally:
         listener.close()
         node_exit = stop(node)
@@ -341,6 +380,7 @@ def test_play_into_the_node_gives_what_run_gives(data_dir, params_file, round_tr
         assert stamp_of(live) == stamp_of(off) and live.header.frame_id == off.header.frame_id
         np.testing.assert_array_equal(image_to_array(live.image), image_to_array(off.image))
         assert [getattr(live, k) for k in scalars] == [getattr(off, k) for k in scalars]
-        assert [getattr(live.valid_window, k) for k in roi] == [getattr(off.valid_window, k) for k in roi]
+        assert ([getattr(live.valid_window, k) for k in roi]
+                == [getattr(off.valid_window, k) for k in roi])
     for (_, live), (_, off) in zip(listener.got['/gcp_mask'], offline['/gcp_mask'], strict=True):
         np.testing.assert_array_equal(image_to_array(live), image_to_array(off))

@@ -1,16 +1,15 @@
 """GCP CNN: streamed confidence vs the full volume, weights files, training, shipped quality."""
 from dataclasses import replace
 
+from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.stereo.cnn import confidence, DEFAULT_WEIGHTS, GcpNet, load_net, STRIP_ROWS
+from gcp_stereo_ros.stereo.gcp import gcp_quality, select
+from gcp_stereo_ros.stereo.images import gray_pair, standardize
+from gcp_stereo_ros.tools import train
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-
-from gcp_stereo_ros.tools import train
-from gcp_stereo_ros.stereo.cnn import DEFAULT_WEIGHTS, STRIP_ROWS, GcpNet, confidence, load_net
-from gcp_stereo_ros.evaluation.datasets import load_frame
-from gcp_stereo_ros.stereo.gcp import gcp_quality, select
-from gcp_stereo_ros.stereo.images import gray_pair, standardize
 
 # Shipped weights on Motorcycle (never seen in training), measured in fp32: theta 0.95 keeps
 # 64.9% of the valid pixels as GCPs at 96.4% accuracy (|cof_d - gt| <= 3), while plain WTA
@@ -52,7 +51,8 @@ def test_confidence_streaming_equals_volume(net, tsukuba):
     # the volume itself against torch: inner products of the per-image descriptors
     lg, rg = gray_pair(left, right)
     with torch.no_grad():  # whole-image descriptors, where `confidence` works in strips of rows
-        fl, fr = (net.features(F.pad(torch.from_numpy(standardize(g))[None, None], (4,) * 4, mode='replicate'))[0].numpy()
+        fl, fr = (net.features(F.pad(torch.from_numpy(standardize(g))[None, None], (4,) * 4,
+                                     mode='replicate'))[0].numpy()
                   for g in (lg, rg))
     for k in (0, 5, 23):
         ref = (fl[:, :, k:] * fr[:, :, :w - k]).sum(axis=0)
@@ -62,7 +62,8 @@ def test_confidence_streaming_equals_volume(net, tsukuba):
 def test_forward_matches_dense_descriptors(net, tsukuba):
     lg, rg = (standardize(g) for g in gray_pair(tsukuba.left, tsukuba.right))
     ys, xs, ds = np.array([50, 120, 200]), np.array([40, 150, 300]), np.array([0, 7, 15])
-    patches = [torch.from_numpy(np.stack([g[y - 4:y + 5, x - 4:x + 5] for y, x in zip(ys, xs - s)])[:, None])
+    patches = [torch.from_numpy(
+                   np.stack([g[y - 4:y + 5, x - 4:x + 5] for y, x in zip(ys, xs - s)])[:, None])
                for g, s in ((lg, 0), (rg, ds))]
     with torch.no_grad():
         got = net(*patches).numpy()
@@ -104,19 +105,23 @@ def test_weights_errors_name_the_path(tmp_path):
 def test_shipped_weights_meta():
     meta = load_net().meta
     assert DEFAULT_WEIGHTS.stat().st_size < 5e6
-    assert 'middlebury_v2/cones' not in meta['train_frames'] and 'middlebury2003/cones' not in meta['train_frames']
-    assert meta['command'].startswith('gcp-stereo-train') and len(meta['history']) == meta['epochs']
+    assert 'middlebury_v2/cones' not in meta['train_frames']
+    assert 'middlebury2003/cones' not in meta['train_frames']
+    assert meta['command'].startswith('gcp-stereo-train')
+    assert len(meta['history']) == meta['epochs']
 
 
 def test_training_smoke_loss_falls(tsukuba):
-    """200 dense steps on an 8x96 crop of tsukuba from a fresh net: the hinge loss collapses.
+    """
+    Check 200 dense steps on an 8x96 crop of tsukuba from a fresh net: the hinge loss collapses.
 
     One torch thread: these convolutions are tiny, and two threads slow down many times
     over when another process holds a core.
     """
     crop = (slice(120, 128), slice(100, 196))
     f = tsukuba
-    view, = train.views(replace(f, left=f.left[crop], right=f.right[crop], gt=f.gt[crop], valid=f.valid[crop]))
+    view, = train.views(replace(f, left=f.left[crop], right=f.right[crop], gt=f.gt[crop],
+                                valid=f.valid[crop]))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -141,8 +146,12 @@ def test_shipped_weights_gcps_on_unseen_motorcycle(net):
 
 
 def test_right_view_check_makes_gcps_more_accurate_on_motorcycle(net):
-    """Measured at theta 0.8: density 89.4 -> 83.8 %, accuracy 91.0 -> 94.9 % with the check
-    (KITTI 000070: 93.6 -> 76.9 %, 77.7 -> 86.8 %)."""
+    """
+    Check that the right-view check makes GCPs more accurate on Motorcycle.
+
+    Measured at theta 0.8: density 89.4 -> 83.8 %, accuracy 91.0 -> 94.9 % with the check
+    (KITTI 000070: 93.6 -> 76.9 %, 77.7 -> 86.8 %).
+    """
     f = load_frame('motorcycle', 'motorcycle')
     conf = confidence(net, f.left, f.right, f.max_disp)
     plain = gcp_quality(select(*conf, 0.8), conf[1], f.gt, f.valid)

@@ -1,11 +1,10 @@
 """Cost volumes: the census definition, SAD against a box filter, invalid cells, bad input."""
 import cv2
+from gcp_stereo_ros.stereo.cost import census_transform, cost_volume, SAD_MAX
+from gcp_stereo_ros.stereo.images import gray_pair, standardize
 import numpy as np
 import pytest
 from skimage import data
-
-from gcp_stereo_ros.stereo.cost import SAD_MAX, census_transform, cost_volume
-from gcp_stereo_ros.stereo.images import gray_pair, standardize
 
 
 @pytest.fixture(scope='module')
@@ -15,7 +14,7 @@ def motorcycle():
 
 
 def census_reference(gray, y, x, rad=4):
-    """The bit string of one pixel, written out: bit k = neighbour k darker than the centre."""
+    """Return one pixel's bit string, written out: bit k = neighbour k darker than the centre."""
     bits = [gray[y + dy, x + dx] < gray[y, x]
             for dy in range(-rad, rad + 1) for dx in range(-rad, rad + 1) if (dy, dx) != (0, 0)]
     return sum(int(b) << k for k, b in enumerate(bits))
@@ -25,7 +24,8 @@ def test_census_transform_matches_definition(motorcycle):
     gray, _ = gray_pair(*motorcycle)
     ct = census_transform(gray)
     rng = np.random.default_rng(0)
-    for y, x in zip(rng.integers(4, gray.shape[0] - 4, 200), rng.integers(4, gray.shape[1] - 4, 200)):
+    for y, x in zip(rng.integers(4, gray.shape[0] - 4, 200),
+                    rng.integers(4, gray.shape[1] - 4, 200)):
         got = int(ct[0, y, x]) | (int(ct[1, y, x]) << 64)
         assert got == census_reference(gray, y, x)
 
@@ -36,7 +36,8 @@ def test_census_cost_is_hamming_distance(motorcycle):
     assert vol.shape == left.shape + (32,) and vol.dtype == np.float32
     assert vol.min() == 0 and vol.max() == 80
     rng = np.random.default_rng(1)
-    for y, x, d in zip(rng.integers(4, 116, 100), rng.integers(40, 216, 100), rng.integers(0, 32, 100)):
+    for y, x, d in zip(rng.integers(4, 116, 100), rng.integers(40, 216, 100),
+                       rng.integers(0, 32, 100)):
         want = bin(census_reference(left, y, x) ^ census_reference(right, y, x - d)).count('1')
         assert vol[y, x, d] == want
     # Invalid cells: windows leaving either image, and x - d left of the right window.

@@ -1,9 +1,8 @@
 """Every shared pair loads with the right names, shapes, scales and masks."""
-import numpy as np
-import pytest
-
 from gcp_stereo_ros.evaluation.datasets import Frame, list_frames, load_frame, load_frames
 from gcp_stereo_ros.stereo.images import to_gray
+import numpy as np
+import pytest
 
 # name: (height, width, colour, max_disp, largest GT disparity, valid fraction range)
 EXPECTED = {
@@ -77,7 +76,8 @@ def test_gt_warps_right_onto_left(frames, name):
 
 
 def test_right_ground_truth(frames):
-    for name, gt_max in (('middlebury2003/cones', 216 / 4), ('middlebury2006/halfsize/Cloth3', 166 / 2)):
+    for name, gt_max in (('middlebury2003/cones', 216 / 4),
+                         ('middlebury2006/halfsize/Cloth3', 166 / 2)):
         f = frames[name]
         assert f.gt_right.shape == f.gt.shape and f.gt_right.dtype == np.float32
         assert np.nanmax(f.gt_right) == pytest.approx(gt_max)

@@ -1,8 +1,7 @@
 """Error rates on a hand-made case with known answers."""
+from gcp_stereo_ros.evaluation.metrics import error_rates
 import numpy as np
 import pytest
-
-from gcp_stereo_ros.evaluation.metrics import error_rates
 
 
 def test_hand_made_case():

@@ -3,10 +3,14 @@ import threading
 import time
 
 import cv2
+from gcp_stereo_ros.ros.node import GcpStereoNode
+from gcp_stereo_ros.ros.params import config_from_params
+from gcp_stereo_ros.ros.rosimage import array_to_image_fields, image_to_array
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest
-import rclpy
 from rcl_interfaces.srv import SetParameters
+import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -14,11 +18,6 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image
 from skimage import data
 from stereo_msgs.msg import DisparityImage
-
-from gcp_stereo_ros.ros.node import GcpStereoNode
-from gcp_stereo_ros.ros.params import config_from_params
-from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from gcp_stereo_ros.ros.rosimage import array_to_image_fields, image_to_array
 
 MAX_DISP = 32
 
@@ -35,10 +34,12 @@ class Harness:
 
     def __init__(self, overrides, capfd):
         self.capfd, self.stderr = capfd, ''
-        self.node = GcpStereoNode(parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+        self.node = GcpStereoNode(
+            parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
         self.peer = Node('test_peer')
-        self.pub = {s: self.peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data)
-                    for s in ('left', 'right')}
+        self.pub = {
+            s: self.peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data)
+            for s in ('left', 'right')}
         self.disparity, self.gcp = [], []
         self.peer.create_subscription(DisparityImage, 'disparity', self.disparity.append, 10)
         self.peer.create_subscription(Image, 'gcp_mask', self.gcp.append, 10)
@@ -65,16 +66,18 @@ class Harness:
         self.send('left', left, encoding, stamp_ns)
         self.send('right', right, encoding, stamp_ns if right_stamp_ns is None else right_stamp_ns)
 
-    def set(self, **values):
-        req = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
+    def set_params(self, **values):
+        req = SetParameters.Request(
+            parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
         future = self.set_client.call_async(req)
         wait_for(future.done, 'set_parameters response')
         return future.result().results
 
     def error_logs(self):
-        """The node's error lines as the console shows them (rcutils writes them to stderr)."""
+        """Return the node's error lines as the console shows them (rcutils writes to stderr)."""
         self.stderr += self.capfd.readouterr().err
-        return [line for line in self.stderr.splitlines() if line.startswith('[ERROR]') and '[gcp_stereo_node]' in line]
+        return [line for line in self.stderr.splitlines()
+                if line.startswith('[ERROR]') and '[gcp_stereo_node]' in line]
 
     def close(self):
         self.executor.shutdown()
@@ -151,9 +154,11 @@ def test_every_encoding(harness, pair):
         for side, img in (('left', left), ('right', right)):
             order = img if alpha_encoding == 'rgba8' else img[:, :, ::-1]
             rgba = np.dstack([order, np.full(img.shape[:2], 7, np.uint8)])
-            harness.send(side, None, None, stamp, dict(height=img.shape[0], width=img.shape[1], encoding=alpha_encoding,
-                                                       step=img.shape[1] * 4, is_bigendian=0, data=rgba.tobytes()))
-        wait_for(lambda: harness.disparity and stamp_of(harness.disparity[-1]) == stamp, alpha_encoding)
+            harness.send(side, None, None, stamp, {
+                'height': img.shape[0], 'width': img.shape[1], 'encoding': alpha_encoding,
+                'step': img.shape[1] * 4, 'is_bigendian': 0, 'data': rgba.tobytes()})
+        wait_for(lambda: harness.disparity and stamp_of(harness.disparity[-1]) == stamp,
+                 alpha_encoding)
     got = [image_to_array(m.image) for m in harness.disparity]
     want_color, _ = expected(harness.overrides, left, right)
     want_gray, _ = expected(harness.overrides, *gray)
@@ -171,7 +176,8 @@ def test_exact_and_approximate_sync(harness, pair):
         wait_for(lambda: len(harness.disparity) >= n, f'{n} disparity messages')
         return [stamp_of(m) for m in harness.disparity]
 
-    harness.send_pair(left, right, 'rgb8', 1_000_000_000, right_stamp_ns=1_000_500_000)  # no exact twin
+    # no exact twin
+    harness.send_pair(left, right, 'rgb8', 1_000_000_000, right_stamp_ns=1_000_500_000)
     harness.send('left', left, 'rgb8', 3_000_000_000)  # out of order: 3 s, then 2 s
     harness.send('left', left, 'rgb8', 2_000_000_000)
     harness.send('right', right, 'rgb8', 2_000_000_000)
@@ -179,9 +185,12 @@ def test_exact_and_approximate_sync(harness, pair):
     harness.send('right', right, 'rgb8', 3_000_000_000)  # the queued 3 s left image finds its twin
     assert outputs(2) == [2_000_000_000, 3_000_000_000]
 
-    assert all(r.successful for r in harness.set(approximate_sync=True, approximate_sync_tolerance_seconds=0.01))
-    harness.send_pair(left, right, 'rgb8', 4_000_000_000, right_stamp_ns=4_020_000_000)  # 20 ms: too far
-    harness.send_pair(left, right, 'rgb8', 5_000_000_000, right_stamp_ns=5_004_000_000)  # 4 ms: a pair
+    assert all(r.successful for r in harness.set_params(
+        approximate_sync=True, approximate_sync_tolerance_seconds=0.01))
+    # 20 ms: too far
+    harness.send_pair(left, right, 'rgb8', 4_000_000_000, right_stamp_ns=4_020_000_000)
+    # 4 ms: a pair
+    harness.send_pair(left, right, 'rgb8', 5_000_000_000, right_stamp_ns=5_004_000_000)
     assert outputs(3)[2:] == [5_000_000_000]
     harness.send('right', right, 'rgb8', 6_003_000_000)  # right first, within tolerance
     harness.send('left', left, 'rgb8', 6_000_000_000)
@@ -193,17 +202,17 @@ def test_exact_and_approximate_sync(harness, pair):
 
 def test_set_parameters_live(harness, pair):
     left, right = pair
-    ok = harness.set(theta=0.95, P1=6.0, P2=100.0, paths=8)
+    ok = harness.set_params(theta=0.95, P1=6.0, P2=100.0, paths=8)
     assert all(r.successful for r in ok)
     for values, reason in [
-        (dict(P2=2.0), 'P2'),
-        (dict(paths=12), 'paths'),
-        (dict(theta=1.5), 'theta'),
-        (dict(cost='ncc'), 'cost'),
-        (dict(weights='/no/such/weights.pt'), '/no/such/weights.pt'),
-        (dict(window=10), 'window'),
+        ({'P2': 2.0}, 'P2'),
+        ({'paths': 12}, 'paths'),
+        ({'theta': 1.5}, 'theta'),
+        ({'cost': 'ncc'}, 'cost'),
+        ({'weights': '/no/such/weights.pt'}, '/no/such/weights.pt'),
+        ({'window': 10}, 'window'),
     ]:
-        (result,) = harness.set(**values)[:1]
+        (result,) = harness.set_params(**values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
     assert harness.node.get_parameter('theta').value == 0.95
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
@@ -211,15 +220,18 @@ def test_set_parameters_live(harness, pair):
     overrides = {**harness.overrides, 'theta': 0.95, 'P1': 6.0, 'P2': 100.0, 'paths': 8}
     want, result = expected(overrides, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
-    np.testing.assert_array_equal(image_to_array(harness.gcp[-1]), result.gcp.astype(np.uint8) * 255)
+    np.testing.assert_array_equal(image_to_array(harness.gcp[-1]),
+                                  result.gcp.astype(np.uint8) * 255)
 
     # Switching cost loads SAD's paper defaults; values set after it (SetParameters applies a
     # request in order) or in the same atomic request are kept.
-    assert all(r.successful for r in harness.set(cost='sad', P2=20.0))
-    values = {n: harness.node.get_parameter(n).value for n in ('theta', 'P1', 'P2', 'c_hi', 'c_low')}
+    assert all(r.successful for r in harness.set_params(cost='sad', P2=20.0))
+    values = {n: harness.node.get_parameter(n).value
+              for n in ('theta', 'P1', 'P2', 'c_hi', 'c_low')}
     assert values == {'theta': 0.55, 'P1': 1.0, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
     harness.send_pair(left, right, 'rgb8', 8_000_000_000)
-    wait_for(lambda: stamp_of(harness.disparity[-1]) == 8_000_000_000, 'disparity after cost switch')
+    wait_for(lambda: stamp_of(harness.disparity[-1]) == 8_000_000_000,
+             'disparity after cost switch')
     want, _ = expected({**overrides, 'cost': 'sad', **values}, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
 
@@ -231,19 +243,22 @@ def test_bad_input_is_logged_and_survived(harness, pair):
     nan_img = gray.astype(np.float32)
     nan_img[5, 5] = np.nan
     bad = [
-        (lambda s: (harness.send('left', left, 'rgb8', s), harness.send('right', small, 'rgb8', s)), 'right image'),
-        (lambda s: (harness.send('left', left, 'rgb8', s, dict(encoding='yuv422')),
+        (lambda s: (harness.send('left', left, 'rgb8', s),
+                    harness.send('right', small, 'rgb8', s)), 'right image'),
+        (lambda s: (harness.send('left', left, 'rgb8', s, {'encoding': 'yuv422'}),
                     harness.send('right', right, 'rgb8', s)), "unsupported encoding 'yuv422'"),
-        (lambda s: (harness.send('left', left, 'rgb8', s, dict(step=10)), harness.send('right', right, 'rgb8', s)),
-         'step 10'),
-        (lambda s: (harness.send('left', left, 'rgb8', s, dict(height=0, width=0, step=0, data=b'')),
+        (lambda s: (harness.send('left', left, 'rgb8', s, {'step': 10}),
+                    harness.send('right', right, 'rgb8', s)), 'step 10'),
+        (lambda s: (harness.send('left', left, 'rgb8', s,
+                                 {'height': 0, 'width': 0, 'step': 0, 'data': b''}),
                     harness.send('right', right, 'rgb8', s)), 'empty'),
-        (lambda s: (harness.send('left', nan_img, '32FC1', s), harness.send('right', nan_img, '32FC1', s)),
-         'NaN'),
+        (lambda s: (harness.send('left', nan_img, '32FC1', s),
+                    harness.send('right', nan_img, '32FC1', s)), 'NaN'),
     ]
     for i, (send, reason) in enumerate(bad):
         send(20_000_000_000 + i)
-        wait_for(lambda: any(reason in m for m in harness.error_logs()), f'error log with {reason!r}')
+        wait_for(lambda: any(reason in m for m in harness.error_logs()),
+                 f'error log with {reason!r}')
     assert all('left/image_rect' in m for m in harness.error_logs())
     assert not harness.disparity
     harness.send_pair(left, right, 'rgb8', 30_000_000_000)  # and the node still works
@@ -253,8 +268,10 @@ def test_bad_input_is_logged_and_survived(harness, pair):
 @pytest.mark.parametrize('harness', [{'weights': '/no/such/weights.pt'}], indirect=True)
 def test_missing_weights_file_is_logged_and_survived(harness, pair):
     harness.send_pair(*pair, 'rgb8', 40_000_000_000)
-    wait_for(lambda: any('/no/such/weights.pt' in m and 'skipping pair' in m for m in harness.error_logs()),
+    wait_for(lambda: any('/no/such/weights.pt' in m and 'skipping pair' in m
+                         for m in harness.error_logs()),
              'weights error on a pair')
-    assert all(r.successful for r in harness.set(weights=''))  # fix it live: frames flow again
+    # fix it live: frames flow again
+    assert all(r.successful for r in harness.set_params(weights=''))
     harness.send_pair(*pair, 'rgb8', 41_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity with the shipped weights')

@@ -1,15 +1,14 @@
 """The pipeline on real data: error thresholds, configuration checks, GCP refinement."""
 from pathlib import Path
 
+from gcp_stereo_ros.evaluation.metrics import error_rates
+from gcp_stereo_ros.ros.params import config_from_params, load_params_file
+from gcp_stereo_ros.stereo.gcp import refine, select
+from gcp_stereo_ros.stereo.pipeline import fixed_point_scale, StereoConfig, StereoPipeline
+from gcp_stereo_ros.tools.evaluate import opencv_sgbm
 import numpy as np
 import pytest
 from skimage import data
-
-from gcp_stereo_ros.tools.evaluate import opencv_sgbm
-from gcp_stereo_ros.stereo.gcp import refine, select
-from gcp_stereo_ros.evaluation.metrics import error_rates
-from gcp_stereo_ros.ros.params import config_from_params, load_params_file
-from gcp_stereo_ros.stereo.pipeline import StereoConfig, StereoPipeline, fixed_point_scale
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -23,7 +22,8 @@ def motorcycle():
 @pytest.fixture(scope='module')
 def census_baseline(motorcycle):
     left, right, gt = motorcycle
-    result = StereoPipeline(StereoConfig.for_cost('census', use_gcp=False, max_disp=64))(left, right)
+    result = StereoPipeline(StereoConfig.for_cost('census', use_gcp=False, max_disp=64))(
+        left, right)
     return error_rates(result.disparity, gt)['bad3']
 
 
@@ -67,7 +67,8 @@ def test_gcp_selection_rule_on_hand_made_rows():
     np.testing.assert_array_equal(select(cof_c, cof_d, cof_dr, 0.6), [[1, 1, 1, 0, 1]])
     # x = 1 (d 1): cof_dr at 0 is 0, 1 px off: kept; x = 2 (d 2): cof_dr at 0 is 0: dropped;
     # x = 4 (d 1): cof_dr at 3 is 0, kept; x = 3 is below theta.
-    np.testing.assert_array_equal(select(cof_c, cof_d, cof_dr, 0.6, lr_check=True), [[1, 1, 0, 0, 1]])
+    np.testing.assert_array_equal(select(cof_c, cof_d, cof_dr, 0.6, lr_check=True),
+                                  [[1, 1, 0, 0, 1]])
 
 
 def test_refinement_of_uint16_volume_needs_integers():
@@ -81,25 +82,30 @@ def test_refinement_of_uint16_volume_needs_integers():
 
 
 @pytest.mark.parametrize('overrides, scale', [
-    (dict(), 10),  # the paper's C_low = 1.3
-    (dict(c_low=10.0, p2=64.0), 1),  # config/gcp_stereo_tuned.yaml
-    (dict(use_gcp=False), 1),
-    (dict(c_low=1.25), 4),
-    (dict(c_low=1.2345), None),  # needs s = 2000: 16 * 2000 * (200 + 128) > 65535
-    (dict(p2=4000.0), None),  # integers, but 16 * (200 + 4000) > 65535
+    ({}, 10),  # the paper's C_low = 1.3
+    ({'c_low': 10.0, 'p2': 64.0}, 1),  # config/gcp_stereo_tuned.yaml
+    ({'use_gcp': False}, 1),
+    ({'c_low': 1.25}, 4),
+    ({'c_low': 1.2345}, None),  # needs s = 2000: 16 * 2000 * (200 + 128) > 65535
+    ({'p2': 4000.0}, None),  # integers, but 16 * (200 + 4000) > 65535
 ])
 def test_fixed_point_scale(overrides, scale):
     assert fixed_point_scale(StereoConfig.for_cost('census', **overrides)) == scale
 
 
 def test_sad_has_no_fixed_point():
-    assert fixed_point_scale(StereoConfig.for_cost('sad', p1=1.0, p2=10.0, c_hi=5.0, c_low=1.0)) is None
+    assert fixed_point_scale(
+        StereoConfig.for_cost('sad', p1=1.0, p2=10.0, c_hi=5.0, c_low=1.0)) is None
 
 
 def test_fixed_point_pipeline_matches_float32(motorcycle, monkeypatch):
-    """The uint16 path against the float32 one. With integer parameters they agree exactly;
+    """
+    Check the uint16 path against the float32 one.
+
+    With integer parameters they agree exactly;
     with the paper's C_low = 1.3 (scale 10) float32 rounds 1.3 and breaks some ties the
-    other way: measured 5 of 48200 pixels here, 20 of 370500 on the whole pair."""
+    other way: measured 5 of 48200 pixels here, 20 of 370500 on the whole pair.
+    """
     left, right, _ = motorcycle
     left, right = left[300:500, 500:800], right[300:500, 500:800]
     paper = StereoPipeline(StereoConfig.for_cost('census', max_disp=64))
@@ -116,15 +122,15 @@ def test_fixed_point_pipeline_matches_float32(motorcycle, monkeypatch):
 
 
 @pytest.mark.parametrize('change, message', [
-    (dict(p1=10.0, p2=5.0), 'P2'),
-    (dict(paths=12), 'paths'),
-    (dict(theta=1.2), 'theta'),
-    (dict(theta=float('nan')), 'theta'),
-    (dict(c_low=300.0), 'c_low'),
-    (dict(window=4), 'window'),
-    (dict(max_disp=0), 'max_disp'),
-    (dict(device='tpu'), 'device'),
-    (dict(cost='ncc'), 'cost'),
+    ({'p1': 10.0, 'p2': 5.0}, 'P2'),
+    ({'paths': 12}, 'paths'),
+    ({'theta': 1.2}, 'theta'),
+    ({'theta': float('nan')}, 'theta'),
+    ({'c_low': 300.0}, 'c_low'),
+    ({'window': 4}, 'window'),
+    ({'max_disp': 0}, 'max_disp'),
+    ({'device': 'tpu'}, 'device'),
+    ({'cost': 'ncc'}, 'cost'),
 ])
 def test_config_rejects_out_of_range_values(change, message):
     with pytest.raises(ValueError, match=message):
@@ -135,29 +141,40 @@ def test_cost_defaults_follow_the_paper():
     sad = StereoConfig.for_cost('sad')
     assert (sad.theta, sad.c_hi, sad.c_low, sad.p1, sad.p2) == (0.55, 5.0, 0.001, 1.0, 14.0)
     census = StereoConfig.for_cost('census', theta=0.7)
-    assert (census.theta, census.c_hi, census.c_low, census.p1, census.p2) == (0.7, 200.0, 1.3, 4.0, 128.0)
+    assert ((census.theta, census.c_hi, census.c_low, census.p1, census.p2)
+            == (0.7, 200.0, 1.3, 4.0, 128.0))
 
 
 def test_gcp_beats_its_baseline_on_motorcycle(motorcycle, census_baseline):
-    """Motorcycle was never seen in training or tuning. Measured: Census+GCP+SGM with the
+    """
+    Check that GCPs beat their baseline on Motorcycle.
+
+    Motorcycle was never seen in training or tuning. Measured: Census+GCP+SGM with the
     cross-validated parameters (config/gcp_stereo_tuned.yaml, right-view check on) 8.93 %
     against 11.81 % for Census+SGM; SAD+GCP+SGM 9.32 % against 14.59 % for SAD+SGM, both
-    with tuned penalties. The margins asked for are about half of those measured."""
+    with tuned penalties. The margins asked for are about half of those measured.
+    """
     left, right, gt = motorcycle
-    tuned = config_from_params({**load_params_file(REPO / 'config' / 'gcp_stereo_tuned.yaml'), 'max_disparity': 64})
+    tuned = config_from_params(
+        {**load_params_file(REPO / 'config' / 'gcp_stereo_tuned.yaml'), 'max_disparity': 64})
     pipe = StereoPipeline(tuned)
     census_gcp = pipe(left, right)
     assert error_rates(census_gcp.disparity, gt)['bad3'] < census_baseline - 1.5
-    sad = pipe.with_config(StereoConfig.for_cost('sad', use_gcp=False, max_disp=64, p1=0.05, p2=1.0))(left, right)
-    sad_tuned = StereoConfig.for_cost('sad', max_disp=64, theta=0.9, p1=0.05, p2=0.5, gcp_lr_check=True)
-    sad_gcp = pipe.with_config(sad_tuned)(left, right, confidence=(census_gcp.cof_c, census_gcp.cof_d, census_gcp.cof_dr))
-    assert error_rates(sad_gcp.disparity, gt)['bad3'] < error_rates(sad.disparity, gt)['bad3'] - 2.5
+    sad = pipe.with_config(
+        StereoConfig.for_cost('sad', use_gcp=False, max_disp=64, p1=0.05, p2=1.0))(left, right)
+    sad_tuned = StereoConfig.for_cost('sad', max_disp=64, theta=0.9, p1=0.05, p2=0.5,
+                                      gcp_lr_check=True)
+    sad_gcp = pipe.with_config(sad_tuned)(
+        left, right, confidence=(census_gcp.cof_c, census_gcp.cof_d, census_gcp.cof_dr))
+    assert (error_rates(sad_gcp.disparity, gt)['bad3']
+            < error_rates(sad.disparity, gt)['bad3'] - 2.5)
 
 
 def test_params_file_keeps_node_parameters_only(tmp_path):
     path = tmp_path / 'p.yaml'
     path.write_text('gcp_stereo_node:\n  ros__parameters:\n    cost: sad\n    P2: 3.0\n'
-                    '    qos_overrides:\n      /left/image_rect:\n        subscription:\n          depth: 2\n')
+                    '    qos_overrides:\n      /left/image_rect:\n'
+                    '        subscription:\n          depth: 2\n')
     config = config_from_params(load_params_file(path))
     assert (config.cost, config.p1, config.p2, config.theta) == ('sad', 1.0, 3.0, 0.55)
     path.write_text('other_node:\n  ros__parameters: {}\n')

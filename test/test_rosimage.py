@@ -2,11 +2,10 @@
 import array
 from types import SimpleNamespace
 
+from gcp_stereo_ros.ros.rosimage import array_to_image_fields, image_to_array
 import numpy as np
 import pytest
 from skimage import data
-
-from gcp_stereo_ros.ros.rosimage import array_to_image_fields, image_to_array
 
 
 @pytest.fixture(scope='module')
@@ -126,7 +125,8 @@ def test_non_finite_float_image_raises(arrays, bad):
 @pytest.mark.parametrize('value, encoding, reason', [
     (np.zeros((4, 5), np.uint16), 'mono8', 'mono8 needs a uint8 \\(H, W\\) array, got uint16'),
     (np.zeros((4, 5), np.float64), '32FC1', 'needs a float32'),
-    (np.zeros((4, 5, 3), np.uint8), 'mono8', 'needs a uint8 \\(H, W\\) array, got uint8 \\(4, 5, 3\\)'),
+    (np.zeros((4, 5, 3), np.uint8), 'mono8',
+     'needs a uint8 \\(H, W\\) array, got uint8 \\(4, 5, 3\\)'),
     (np.zeros((4, 5), np.uint8), 'rgb8', 'rgb8 needs a uint8 \\(H, W, 3\\)'),
     (np.zeros((4, 5, 4), np.uint8), 'bgr8', 'bgr8 needs a uint8 \\(H, W, 3\\)'),
     (np.zeros((0, 5), np.uint8), 'mono8', 'empty'),

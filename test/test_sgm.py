@@ -1,8 +1,7 @@
 """SGM: exact agreement with a brute-force reference, and the optional post-processing."""
+from gcp_stereo_ros.stereo.sgm import aggregate, directions, disparity
 import numpy as np
 import pytest
-
-from gcp_stereo_ros.stereo.sgm import aggregate, directions, disparity
 
 
 def reference_aggregate(cost, p1, p2, paths):

@@ -1,7 +1,6 @@
 """PairSync: exact and approximate stereo pairing, drops, and the unmatched streak."""
-import pytest
-
 from gcp_stereo_ros.ros.sync import PairSync
+import pytest
 
 MS = 1_000_000  # nanoseconds
 
@@ -46,7 +45,8 @@ def test_exact_queue_overflow_drops_oldest_stamp():
     assert sync.dropped_left == 1
     assert sync.add('right', 100, 'R100') is None
     assert sync.add('right', 200, 'R200') == (200, 'L200', 'R200')
-    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (1, 1, 1)  # R100 discarded by the pair
+    # R100 discarded by the pair
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (1, 1, 1)
 
 
 def test_pair_discards_everything_older_on_both_sides():
@@ -70,11 +70,13 @@ def test_exact_ignores_tolerance():
 def test_approximate_pairs_within_tolerance_only():
     sync = PairSync(approximate=True, tolerance=0.005)
     assert sync.add('left', 1000 * MS, 'L1') is None
-    assert sync.add('right', 1005 * MS, 'R1') == (1000 * MS, 'L1', 'R1')  # exactly at the tolerance
+    # exactly at the tolerance
+    assert sync.add('right', 1005 * MS, 'R1') == (1000 * MS, 'L1', 'R1')
     assert sync.add('left', 2000 * MS, 'L2') is None
     assert sync.add('right', 2005 * MS + 1, 'R2') is None  # 1 ns beyond it
     assert sync.add('right', 1997 * MS, 'R3') == (2000 * MS, 'L2', 'R3')
-    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (2, 0, 0)  # R2 is newer: still queued
+    # R2 is newer: still queued
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (2, 0, 0)
 
 
 def test_approximate_chooses_closest_match():
@@ -103,7 +105,8 @@ def test_approximate_out_of_order_arrival():
     assert sync.add('left', 200 * MS, 'L200') is None
     assert sync.add('left', 100 * MS, 'L100') == (100 * MS, 'L100', 'R101')
     assert sync.add('left', 300 * MS, 'L300') == (300 * MS, 'L300', 'R301')
-    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (2, 1, 0)  # L200 never got a twin
+    # L200 never got a twin
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (2, 1, 0)
 
 
 def test_unmatched_streak_grows_while_one_side_is_missing():

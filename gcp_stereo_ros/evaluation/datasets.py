@@ -1,12 +1,13 @@
-"""Stereo pairs with ground truth from the standard benchmark layouts (KITTI, Middlebury).
+"""
+Stereo pairs with ground truth from the standard benchmark layouts (KITTI, Middlebury).
 
 `source` is the word `motorcycle` (scikit-image's Middlebury 2014 pair) or a folder that
 is searched recursively for every supported layout. Frame names are scene paths relative
 to `source` (its basename when `source` is the scene itself), plus `/<image id>` for KITTI.
 """
+from dataclasses import dataclass
 import functools
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ _KITTI_MAX_DISP = 128
 @dataclass
 class Frame:
     """One rectified pair; disparities are in pixels of these images, NaN where unknown."""
+
     name: str
     left: np.ndarray
     right: np.ndarray
@@ -44,7 +46,7 @@ def list_frames(source):
 
 
 def load_frame(source, name):
-    """The frame called `name` (as returned by `list_frames(source)`)."""
+    """Return the frame called `name` (as returned by `list_frames(source)`)."""
     frames = _scan(source)
     if name not in frames:
         raise ValueError(f'no frame {name!r} in {source}; available: {", ".join(frames)}')
@@ -87,19 +89,23 @@ def _scene(folder, rel, files):
         for kind in _KITTI:
             if all((training / d).is_dir() for d in kind[:3]):
                 stems = sorted(p.stem for p in (training / kind[0]).glob('*_10.png'))
-                return {f'{rel}/{s}': functools.partial(_kitti, training, f'{rel}/{s}', s, kind) for s in stems}
+                return {f'{rel}/{s}': functools.partial(_kitti, training, f'{rel}/{s}', s, kind)
+                        for s in stems}
     if {'imL.png', 'imR.png', 'groundtruth.png', 'nonocc.png', 'info.txt'} <= files:
         return {rel: functools.partial(_middlebury_v2, folder, rel)}
     if {'im2.png', 'im6.png', 'disp2.png'} <= files:
-        return {rel: functools.partial(_middlebury_pair, folder, rel, 'im2', 'im6', 'disp2', 'disp6', None)}
+        return {rel: functools.partial(_middlebury_pair, folder, rel, 'im2', 'im6', 'disp2',
+                                       'disp6', None)}
     if {'view1.png', 'view5.png', 'disp1.png'} <= files:
         parts = [p.lower() for p in folder.resolve().parts]
         scale = 2 if 'halfsize' in parts else 3 if 'thirdsize' in parts else 1
-        return {rel: functools.partial(_middlebury_pair, folder, rel, 'view1', 'view5', 'disp1', 'disp5', scale)}
+        return {rel: functools.partial(_middlebury_pair, folder, rel, 'view1', 'view5', 'disp1',
+                                       'disp5', scale)}
     gts = sorted(f for f in files if f.endswith('GT.png'))
     if gts:
         if len(gts) > 1:
-            raise ValueError(f'{folder}: several <name>GT.png files {gts}; expected one pair per folder')
+            raise ValueError(f'{folder}: several <name>GT.png files {gts}; '
+                             'expected one pair per folder')
         prefix = gts[0][:-len('GT.png')]
         lefts = sorted(f for f in files if f.startswith(prefix + 'L.'))
         rights = sorted(f for f in files if f.startswith(prefix + 'R.'))
@@ -132,9 +138,11 @@ def _above(gt):
 
 
 def _frame(name, left, right, gt, valid, max_disp, gt_right=None, **extra):
-    for what, a in (('right image', right), ('ground truth', gt), ('right ground truth', gt_right)):
+    for what, a in (('right image', right), ('ground truth', gt),
+                    ('right ground truth', gt_right)):
         if a is not None and a.shape[:2] != left.shape[:2]:
-            raise ValueError(f'{name}: {what} is {a.shape[:2]} but left image is {left.shape[:2]}')
+            raise ValueError(f'{name}: {what} is {a.shape[:2]} '
+                             f'but left image is {left.shape[:2]}')
     return Frame(name, left, right, gt, valid, max_disp, gt_right, **extra)
 
 
@@ -149,8 +157,9 @@ def _kitti(training, name, stem, kind):
     left, right, gt_dir, *cams = kind
     gt = _disparity(np.array(Image.open(training / gt_dir / f'{stem}.png')), 256.0)
     focal, baseline = _kitti_calib(training, stem.split('_')[0], cams)
-    return _frame(name, _image(training / left / f'{stem}.png'), _image(training / right / f'{stem}.png'),
-                  gt, np.isfinite(gt), _KITTI_MAX_DISP, focal_px=focal, baseline_m=baseline)
+    return _frame(name, _image(training / left / f'{stem}.png'),
+                  _image(training / right / f'{stem}.png'), gt, np.isfinite(gt), _KITTI_MAX_DISP,
+                  focal_px=focal, baseline_m=baseline)
 
 
 def _kitti_calib(training, frame_id, cams):
@@ -158,8 +167,10 @@ def _kitti_calib(training, frame_id, cams):
     for path, key in ((training / 'calib' / f'{frame_id}.txt', 'P{}'),
                       (training / 'calib_cam_to_cam' / f'{frame_id}.txt', 'P_rect_0{}')):
         if path.is_file():
-            rows = dict(line.split(':', 1) for line in path.read_text().splitlines() if ':' in line)
-            pl, pr = (np.array(rows[key.format(c)].split(), dtype=float).reshape(3, 4) for c in cams)
+            rows = dict(line.split(':', 1)
+                        for line in path.read_text().splitlines() if ':' in line)
+            pl, pr = (np.array(rows[key.format(c)].split(), dtype=float).reshape(3, 4)
+                      for c in cams)
             return float(pr[0, 0]), float((pl[0, 3] - pr[0, 3]) / pr[0, 0])
     return None, None
 
@@ -167,7 +178,8 @@ def _kitti_calib(training, frame_id, cams):
 def _middlebury_v2(folder, name):
     lines = (folder / 'info.txt').read_text().split()
     if len(lines) < 2:
-        raise ValueError(f'{folder / "info.txt"}: expected the scale and the number of disparities')
+        raise ValueError(f'{folder / "info.txt"}: '
+                         'expected the scale and the number of disparities')
     scale, ndisp = float(lines[0]), int(lines[1])
     gt = _disparity(_gray8(folder / 'groundtruth.png'), scale)
     valid = np.isfinite(gt) & (_gray8(folder / 'nonocc.png') == 255)
@@ -188,4 +200,5 @@ def _middlebury_pair(folder, name, left, right, gt_left, gt_right, scale):
 
 def _aloe(folder, name, left, right, gt):
     gt = _disparity(_gray8(folder / gt), 1.0)
-    return _frame(name, _image(folder / left), _image(folder / right), gt, np.isfinite(gt), _above(gt))
+    return _frame(name, _image(folder / left), _image(folder / right), gt, np.isfinite(gt),
+                  _above(gt))

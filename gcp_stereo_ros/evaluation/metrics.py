@@ -5,7 +5,8 @@ THRESHOLDS = (1, 2, 3, 5)
 
 
 def error_rates(disp, gt, valid=None):
-    """Bad-pixel rates and mean absolute error of `disp` against `gt`.
+    """
+    Return the bad-pixel rates and mean absolute error of `disp` against `gt`.
 
     Evaluated pixels are `valid` (default: all) where `gt` is finite. `bad1`..`bad5` are the
     percentages of them with |disp - gt| above 1, 2, 3, 5 px, counting pixels without an
@@ -23,7 +24,8 @@ def error_rates(disp, gt, valid=None):
             raise ValueError(f'valid mask has shape {valid.shape} but ground truth has {gt.shape}')
         mask &= valid
     if not mask.any():
-        raise ValueError('no pixel to evaluate: the valid mask and finite ground truth do not overlap')
+        raise ValueError('no pixel to evaluate: '
+                         'the valid mask and finite ground truth do not overlap')
     err = np.abs(disp[mask] - gt[mask])
     estimated = np.isfinite(err)
     err[~estimated] = np.inf

@@ -6,7 +6,11 @@ import numpy as np
 
 
 def colorize(disp, max_disp):
-    """uint8 BGR (H, W, 3) TURBO rendering of `disp` over [0, max_disp]; NaN, inf and negative are black."""
+    """
+    Return a uint8 BGR (H, W, 3) TURBO rendering of `disp` over [0, max_disp].
+
+    NaN, inf and negative values are black.
+    """
     if not max_disp > 0:
         raise ValueError(f'max_disp must be positive, got {max_disp}')
     d = np.asarray(disp, dtype=np.float32)

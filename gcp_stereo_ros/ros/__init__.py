@@ -1,1 +1,5 @@
-"""The ROS 2 face: the node and its adapters (parameters, messages, images, sync, private graph)."""
+"""
+The ROS 2 face.
+
+The node and its adapters (parameters, messages, images, sync, private graph).
+"""

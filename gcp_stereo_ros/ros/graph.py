@@ -1,22 +1,27 @@
-"""Starting and stopping the node in a private ROS graph, for the demo and the load run.
+"""
+Starting and stopping the node in a private ROS graph, for the demo and the load run.
 
 rclpy is imported only inside `peer_graph`, after the environment it reads is set.
 """
+from contextlib import contextmanager
 import os
+from pathlib import Path
 import random
 import signal
 import subprocess
 import sys
 import threading
-from contextlib import contextmanager
-from pathlib import Path
 
 SHARE = 'share/gcp_stereo_ros'
 
 
 def package_file(relative):
-    """A file shipped under config/ or launch/: from the source tree (editable install) or
-    from <prefix>/share/gcp_stereo_ros (pip wheel, colcon install)."""
+    """
+    Return the path of a file shipped under config/ or launch/.
+
+    It is found in the source tree (editable install) or in <prefix>/share/gcp_stereo_ros
+    (pip wheel, colcon install).
+    """
     here = Path(__file__).resolve().parents[1]  # the gcp_stereo_ros package
     for root in (here.parent, *(p / SHARE for p in here.parents), Path(sys.prefix) / SHARE):
         if (root / relative).is_file():
@@ -25,8 +30,12 @@ def package_file(relative):
 
 
 def private_env(domain_id=None):
-    """os.environ for a graph of our own: its own DDS domain, loopback discovery only, and
-    the shipped Fast DDS profile (32 MB shared memory) so large images are not dropped."""
+    """
+    Return os.environ for a graph of our own.
+
+    The graph gets its own DDS domain, loopback discovery only, and the shipped Fast DDS
+    profile (32 MB shared memory) so large images are not dropped.
+    """
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(domain_id if domain_id is not None else random.randint(1, 101))
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
@@ -35,7 +44,7 @@ def private_env(domain_id=None):
 
 
 def start_node(env, params=None, params_file=None):
-    """The node as a child process (`python -m gcp_stereo_ros.node --ros-args ...`)."""
+    """Start the node as a child process (`python -m gcp_stereo_ros.node --ros-args ...`)."""
     cmd = [sys.executable, '-m', 'gcp_stereo_ros.node', '--ros-args']
     if params_file:
         cmd += ['--params-file', str(params_file)]
@@ -46,10 +55,14 @@ def start_node(env, params=None, params_file=None):
 
 @contextmanager
 def peer_graph(peer_name, params=None, params_file=None):
-    """Yield (peer, node): the node started as a child process in a private graph (this
-    process's environment becomes `private_env()`, so children such as `gcp-stereo-bag play`
-    join it too) and an rclpy node `peer_name` of ours spinning in a thread. On exit the
-    peer is destroyed and the node stopped with Ctrl-C (`node.returncode` holds its exit code)."""
+    """
+    Yield (peer, node) for the node run in a private graph.
+
+    `node` is the node started as a child process in a private graph (this process's
+    environment becomes `private_env()`, so children such as `gcp-stereo-bag play` join it
+    too) and `peer` an rclpy node `peer_name` of ours spinning in a thread. On exit the peer
+    is destroyed and the node stopped with Ctrl-C (`node.returncode` holds its exit code).
+    """
     os.environ.update(private_env())
     import rclpy  # after the environment is set: rclpy reads it at init
     from rclpy.executors import SingleThreadedExecutor

@@ -1,4 +1,5 @@
-"""Output messages from pipeline results, ROS-free.
+"""
+Output messages from pipeline results, ROS-free.
 
 `types` is any namespace with the message classes Image, DisparityImage and
 RegionOfInterest: rclpy's (sensor_msgs.msg / stereo_msgs.msg) in the node, rosbags' in the
@@ -12,7 +13,7 @@ from .rosimage import array_to_image_fields
 
 
 def stamp_ns(header):
-    """A std_msgs/Header's stamp in integer nanoseconds (the sync and bag key)."""
+    """Return a std_msgs/Header's stamp in integer nanoseconds (the sync and bag key)."""
     return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
 
 
@@ -24,8 +25,12 @@ class Geometry:
 
 
 def geometry(left_info, right_info):
-    """Stereo geometry from the left and right sensor_msgs/CameraInfo (or None if absent),
-    as stereo_image_proc does: f = right fx, t = -right Tx / fx."""
+    """
+    Return the stereo geometry from the left and right sensor_msgs/CameraInfo.
+
+    Either CameraInfo may be None if absent. Computed as stereo_image_proc does:
+    f = right fx, t = -right Tx / fx.
+    """
     if left_info is None or right_info is None:
         return Geometry()
     pl, pr = np.asarray(left_info.p, float), np.asarray(right_info.p, float)
@@ -35,9 +40,13 @@ def geometry(left_info, right_info):
 
 
 def disparity_message(types, header, disp, config, geom, data=lambda a: a):
-    """stereo_msgs/DisparityImage for a float32 disparity (NaN = invalid, published as
-    min_disparity - 1 as the message definition asks). `data` converts the uint8 buffer to
-    what the message class wants (array.array('B') for rclpy, the numpy array for rosbags)."""
+    """
+    Return a stereo_msgs/DisparityImage for a float32 disparity.
+
+    NaN = invalid, published as min_disparity - 1 as the message definition asks. `data`
+    converts the uint8 buffer to what the message class wants (array.array('B') for rclpy,
+    the numpy array for rosbags).
+    """
     border = config.window // 2
     h, w = disp.shape
     out = disp - np.float32(geom.cx_offset) if geom.cx_offset else disp.copy()
@@ -46,13 +55,14 @@ def disparity_message(types, header, disp, config, geom, data=lambda a: a):
     roi = types.RegionOfInterest(x_offset=left, y_offset=border, width=max(w - border - left, 0),
                                  height=max(h - 2 * border, 0), do_rectify=False)
     return types.DisparityImage(
-        header=header, image=image_message(types, header, out, '32FC1', data), f=geom.f, t=geom.t, valid_window=roi,
+        header=header, image=image_message(types, header, out, '32FC1', data),
+        f=geom.f, t=geom.t, valid_window=roi,
         min_disparity=0.0, max_disparity=float(config.max_disp - 1),
         delta_d=1.0 / 16 if config.subpixel else 1.0)
 
 
 def image_message(types, header, array, encoding, data=lambda a: a):
-    """sensor_msgs/Image of a mono8 or 32FC1 array."""
+    """Return a sensor_msgs/Image of a mono8 or 32FC1 array."""
     fields = array_to_image_fields(array, encoding)
     fields['data'] = data(fields['data'])
     return types.Image(header=header, **fields)

@@ -1,4 +1,5 @@
-"""sensor_msgs/Image <-> numpy without cv_bridge or rclpy.
+"""
+sensor_msgs/Image <-> numpy without cv_bridge or rclpy.
 
 Works on any object with the Image fields (height, width, encoding, is_bigendian, step,
 data): rclpy messages (data is array.array('B')) as well as rosbags ones (numpy uint8).
@@ -14,7 +15,8 @@ _WRITE = ('mono8', 'mono16', '32FC1', 'rgb8', 'bgr8')
 
 
 def image_to_array(msg, topic='image'):
-    """Return the image of `msg` as a new numpy array.
+    """
+    Return the image of `msg` as a new numpy array.
 
     mono8, mono16 and 32FC1 give (H, W) uint8, uint16 or float32; rgb8, bgr8, rgba8 and
     bgra8 give (H, W, 3) uint8 in RGB order (alpha dropped). Row padding (`step`) and
@@ -23,7 +25,8 @@ def image_to_array(msg, topic='image'):
     """
     encoding = msg.encoding
     if encoding not in _READ:
-        raise ValueError(f'{topic}: unsupported encoding {encoding!r}; expected one of {", ".join(_READ)}')
+        raise ValueError(f'{topic}: unsupported encoding {encoding!r}; '
+                         f'expected one of {", ".join(_READ)}')
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     if height == 0 or width == 0:
         raise ValueError(f'{topic}: empty {encoding} image of {width}x{height} pixels')
@@ -54,7 +57,10 @@ def image_to_array(msg, topic='image'):
 
 
 def array_to_image_fields(array, encoding):
-    """Image fields (all but header) for `array`: height, width, encoding, is_bigendian=0, step, data.
+    """
+    Return the Image fields (all but header) for `array`.
+
+    The fields are height, width, encoding, is_bigendian=0, step and data.
 
     `array` is uint8 (H, W) for mono8, uint16 (H, W) for mono16, float32 (H, W) for 32FC1
     and uint8 (H, W, 3) in RGB order for rgb8 or bgr8 (reordered here). `data` is a new
@@ -76,7 +82,8 @@ def array_to_image_fields(array, encoding):
     dtype = np.dtype(dtype)
     a = np.asarray(array)
     native = dtype.newbyteorder('=')
-    if a.dtype != native or a.ndim != (2 if channels == 1 else 3) or (channels > 1 and a.shape[2] != 3):
+    if (a.dtype != native or a.ndim != (2 if channels == 1 else 3)
+            or (channels > 1 and a.shape[2] != 3)):
         shape = '(H, W)' if channels == 1 else '(H, W, 3)'
         raise ValueError(f'{encoding} needs a {native} {shape} array, got {a.dtype} {a.shape}')
     if a.shape[0] == 0 or a.shape[1] == 0:

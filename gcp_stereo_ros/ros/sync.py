@@ -1,4 +1,5 @@
-"""Left/right stereo pairing by header stamp, a ROS-free stand-in for message_filters.
+"""
+Left/right stereo pairing by header stamp, a ROS-free stand-in for message_filters.
 
 Shared by the node and the offline rosbag tools. For two inputs it behaves like
 message_filters' ExactTime policy (approximate=False: identical stamps) or a simplified
@@ -12,7 +13,8 @@ RESTART_NS = 1_000_000_000  # a stamp this far before the last pair starts a new
 
 
 class PairSync:
-    """Pair left and right messages by stamp; stamps may arrive out of order.
+    """
+    Pair left and right messages by stamp; stamps may arrive out of order.
 
     A message is paired as soon as the other side holds a message within tolerance (the
     closest one, the older one on a tie), so keep `tolerance` below half the frame period.
@@ -30,7 +32,8 @@ class PairSync:
         if isinstance(queue_size, bool) or not isinstance(queue_size, int) or queue_size < 1:
             raise ValueError(f'queue_size must be an integer >= 1, got {queue_size!r}')
         if not 0 <= tolerance < math.inf:
-            raise ValueError(f'tolerance must be a finite number of seconds >= 0, got {tolerance!r}')
+            raise ValueError(
+                f'tolerance must be a finite number of seconds >= 0, got {tolerance!r}')
         self.queue_size = queue_size
         self.tolerance_ns = round(tolerance * 1e9) if approximate else 0
         self.pairs = 0
@@ -42,7 +45,11 @@ class PairSync:
         self._streak = {side: 0 for side in SIDES}
 
     def add(self, side, stamp_ns, msg):
-        """Queue `msg` of `side`; return (stamp_left_ns, left_msg, right_msg) once paired, else None."""
+        """
+        Queue `msg` of `side`; return (stamp_left_ns, left_msg, right_msg) once paired.
+
+        Return None otherwise.
+        """
         other = other_side(side)
         if self._last[side] is not None and stamp_ns < self._last[side] - RESTART_NS:
             for s in SIDES:
@@ -74,7 +81,11 @@ class PairSync:
         return match_stamp, match, msg
 
     def unmatched_streak(self, side):
-        """Messages of `side` discarded unpaired since the last pair; growth means its twin goes missing."""
+        """
+        Return the number of messages of `side` discarded unpaired since the last pair.
+
+        Growth means its twin goes missing.
+        """
         other_side(side)
         return self._streak[side]
 

@@ -1,1 +1,5 @@
-"""The method, ROS-free: cost volumes, SGM, the Siamese CNN, GCP selection and refinement, the pipeline."""
+"""
+The method, ROS-free.
+
+Cost volumes, SGM, the Siamese CNN, GCP selection and refinement, the pipeline.
+"""

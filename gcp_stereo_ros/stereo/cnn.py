@@ -1,4 +1,5 @@
-"""Siamese CNN matching confidence (Zhong, Su, Cao, Li: GCPs via CNN for stereo matching).
+"""
+Siamese CNN matching confidence (Zhong, Su, Cao, Li: GCPs via CNN for stereo matching).
 
 Each branch: 4 conv layers (3x3, 64 maps, ReLU after each, no pooling, no padding) map a
 9x9 patch of per-image standardized gray intensity to a 64-d descriptor; both branches
@@ -14,19 +15,19 @@ streams the confidence volume Vol(y, x, d) = <f_L(y, x), f_R(y, x - d)>, keeping
 cof_c = max_d Vol and cof_d = argmax_d Vol (first maximum on ties; cells with x - d < 0
 have Vol = 0), and the right view's CNN disparity cof_dr(y, xr) = argmax of Vol(y, xr + d, d)
 over d < min(D, W - xr), for GCPs that both views agree on (`gcp.select`). Row y of Vol
-needs only row y of both descriptor images, so both steps run on strips of STRIP_ROWS rows: the activations of a strip stay in
-the CPU caches (measured on a 2-core Zen 4 for a KITTI pair: bf16 convolutions 0.79 s for
-the whole images, 0.54 s in strips of 64 rows) and the descriptors of the whole images are
-never held (2 x 119 MB for a KITTI pair in float32).
+needs only row y of both descriptor images, so both steps run on strips of STRIP_ROWS rows:
+the activations of a strip stay in the CPU caches (measured on a 2-core Zen 4 for a KITTI
+pair: bf16 convolutions 0.79 s for the whole images, 0.54 s in strips of 64 rows) and the
+descriptors of the whole images are never held (2 x 119 MB for a KITTI pair in float32).
 """
-import time
 from pathlib import Path
+import time
 
+from numba import njit, prange
 import numpy as np
 import torch
-import torch.nn.functional as F
-from numba import njit, prange
 from torch import nn
+import torch.nn.functional as F
 
 from .cost import check_max_disp
 from .images import gray_pair, standardize
@@ -50,19 +51,25 @@ class GcpNet(nn.Module):
         self.branch = nn.Sequential(*layers)
 
     def features(self, x):
-        """Valid (unpadded) convolution of (N, 1, H, W) -> L2-normalized (N, 64, H-8, W-8)."""
+        """
+        Apply the valid (unpadded) convolution to (N, 1, H, W).
+
+        The result is L2-normalized, of shape (N, 64, H-8, W-8).
+        """
         return F.normalize(self.branch(x).float(), dim=1, eps=EPS)
 
     def forward(self, left_patches, right_patches):
         """Confidences (N,) in [0, 1] of (N, 1, 9, 9) left/right patch pairs."""
         for name, p in (('left_patches', left_patches), ('right_patches', right_patches)):
             if p.ndim != 4 or tuple(p.shape[1:]) != (1, PATCH, PATCH):
-                raise ValueError(f'{name} must have shape (N, 1, {PATCH}, {PATCH}), got {tuple(p.shape)}')
+                raise ValueError(f'{name} must have shape (N, 1, {PATCH}, {PATCH}), '
+                                 f'got {tuple(p.shape)}')
         return (self.features(left_patches) * self.features(right_patches)).sum(dim=1).flatten()
 
 
 def load_net(path=None, device='cpu'):
-    """GcpNet in eval mode with the weights at `path` (default: the shipped weights).
+    """
+    Return a GcpNet in eval mode with the weights at `path` (default: the shipped weights).
 
     The file holds {'state_dict': ..., 'meta': {...}} (see `gcp_stereo_ros.tools.train`).
     Raises FileNotFoundError if it does not exist, ValueError if it cannot be read as such.
@@ -75,7 +82,8 @@ def load_net(path=None, device='cpu'):
         net = GcpNet()
         net.load_state_dict(blob['state_dict'])
     except Exception as e:  # any unreadable or mismatching file is reported the same way
-        raise ValueError(f'GCP CNN weights file {path} is corrupt or not a GcpNet checkpoint: {e}') from e
+        raise ValueError(f'GCP CNN weights file {path} is corrupt or not a GcpNet checkpoint: '
+                         f'{e}') from e
     net.meta = blob.get('meta', {})
     return net.to(device).eval()
 
@@ -90,9 +98,13 @@ def _dot(a, b):
 
 @njit(inline='always', fastmath=True)
 def _unit_rows(bits, shift, y):
-    """Rows y of both descriptor images as float32 (2, W, C), each descriptor divided by
-    max(its L2 norm, EPS), as F.normalize does. `bits`: (2, H, W, C) float32 bit patterns,
-    as uint32 (`shift` 0) or as the upper halves of bfloat16 values in uint16 (`shift` 16)."""
+    """
+    Return rows y of both descriptor images as float32 (2, W, C), L2-normalized.
+
+    Each descriptor is divided by max(its L2 norm, EPS), as F.normalize does. `bits`:
+    (2, H, W, C) float32 bit patterns, as uint32 (`shift` 0) or as the upper halves of
+    bfloat16 values in uint16 (`shift` 16).
+    """
     _, _, w, c = bits.shape
     out = np.empty((2, w, c), np.float32)
     out_bits = out.view(np.uint32)
@@ -110,8 +122,12 @@ def _unit_rows(bits, shift, y):
 
 @njit(parallel=True, cache=True, fastmath=True)
 def _best_match(bits, shift, max_disp, cof_c, cof_d, cof_dr):
-    """Streamed max / first argmax over d of Vol(y, x, d) = <f_L[y, x], f_R[y, x - d]> into
-    (H, W) rows, and for each right pixel xr the first argmax over d of Vol(y, xr + d, d)."""
+    """
+    Stream max / first argmax over d of Vol(y, x, d) = <f_L[y, x], f_R[y, x - d]>.
+
+    They are written into (H, W) rows, and for each right pixel xr the first argmax over d
+    of Vol(y, xr + d, d).
+    """
     _, h, w, _ = bits.shape
     for y in prange(h):
         f = _unit_rows(bits, shift, y)
@@ -143,7 +159,7 @@ def _best_match(bits, shift, max_disp, cof_c, cof_d, cof_dr):
 
 @njit(parallel=True, cache=True, fastmath=True)
 def _volume(bits, shift, vol):
-    """The (H, W, D) confidence volume into `vol`, same arithmetic as `_best_match`."""
+    """Write the (H, W, D) confidence volume into `vol`, same arithmetic as `_best_match`."""
     _, h, w, _ = bits.shape
     for y in prange(h):
         f = _unit_rows(bits, shift, y)
@@ -153,22 +169,27 @@ def _volume(bits, shift, vol):
 
 
 def network_input(*grays):
-    """What the branch sees: each gray image standardized on its own, replicate-padded by PAD
-    (so every pixel gets a descriptor), as one float32 batch (N, 1, H + 2 PAD, W + 2 PAD)."""
+    """
+    Return what the branch sees.
+
+    Each gray image standardized on its own, replicate-padded by PAD (so every pixel gets a
+    descriptor), as one float32 batch (N, 1, H + 2 PAD, W + 2 PAD).
+    """
     x = torch.from_numpy(np.stack([standardize(g) for g in grays])[:, None])
     return F.pad(x, (PAD,) * 4, mode='replicate')
 
 
 def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=False, seconds=None):
-    """CNN matching confidence of a rectified pair for disparities 0..max_disp-1.
+    """
+    Return the CNN matching confidence of a rectified pair for disparities 0..max_disp-1.
 
     `left`/`right`: anything `images.gray_pair` accepts; each is standardized on its own.
     The convolutions run with torch on `device` ('cpu' or 'cuda'), both images as one batch
     with the net in channels_last (1.6x faster on CPU than the default layout); `bf16` turns
     on bfloat16 autocast (about 2x faster on CPUs with AVX512-BF16). The L2 normalization
     (float32) and the correlation always run in a numba kernel on the CPU, strip by strip,
-    streaming over d without materializing the volume. `seconds`: a dict that gains the wall time of the
-    convolutions ('cnn') and of the correlation ('confidence').
+    streaming over d without materializing the volume. `seconds`: a dict that gains the wall
+    time of the convolutions ('cnn') and of the correlation ('confidence').
 
     Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1], int32 (H, W)
     argmax_d Vol, where Vol(y, x, d) = 0 for x - d < 0, and int32 (H, W) cof_dr, for each
@@ -181,7 +202,8 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     check_max_disp(max_disp, w)
     max_disp = int(max_disp)
     x = network_input(lg, rg).to(device)
-    net.to(memory_format=torch.channels_last)  # in place; the 1-channel input alone cannot select it
+    # In place; the 1-channel input alone cannot select it.
+    net.to(memory_format=torch.channels_last)
     cof_c = np.empty((h, w), np.float32)
     cof_d = np.empty((h, w), np.int32)
     cof_dr = np.empty((h, w), np.int32)
@@ -192,7 +214,8 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     for y0 in range(0, h, STRIP_ROWS):
         y1 = min(y0 + STRIP_ROWS, h)
         t = time.perf_counter()
-        with torch.inference_mode(), torch.autocast(torch.device(device).type, torch.bfloat16, enabled=bf16):
+        with torch.inference_mode(), torch.autocast(torch.device(device).type, torch.bfloat16,
+                                                    enabled=bf16):
             f = net.branch(x[:, :, y0:y1 + 2 * PAD])  # channels_last: the permute below is free
         f = f.permute(0, 2, 3, 1).cpu().contiguous()  # (2, rows, W, 64)
         if f.dtype == torch.bfloat16:  # the numba kernels widen and normalize it

@@ -1,4 +1,5 @@
-"""Matching cost volumes of a rectified pair: Census (Hamming) and SAD.
+"""
+Matching cost volumes of a rectified pair: Census (Hamming) and SAD.
 
 A volume has shape (H, W, D) for disparities 0..D-1 and dtype float32: Census distances are
 small integers, exact in float32, and the GCP refinement writes the paper's fractional
@@ -18,8 +19,8 @@ SAD: mean absolute difference over the window of the per-image standardized inte
 deviations, truncated at 3.2. That is the paper's range [0, 3.2] without rescaling: on the
 shared pairs the untruncated mean exceeds 3.2 in well under 1% of valid cells.
 """
-import numpy as np
 from numba import njit, prange
+import numpy as np
 
 from .images import gray_pair, standardize
 
@@ -35,13 +36,14 @@ _H01 = np.uint64(0x0101010101010101)
 
 
 def max_cost(cost, window):
-    """The cost assigned to invalid cells: the largest value `cost` can take."""
+    """Return the cost assigned to invalid cells: the largest value `cost` can take."""
     return float(window * window - 1) if cost == 'census' else SAD_MAX
 
 
 def check_max_disp(max_disp, width):
     if not (isinstance(max_disp, (int, np.integer)) and 1 <= max_disp <= width):
-        raise ValueError(f'max_disp must be an integer in [1, image width {width}], got {max_disp!r}')
+        raise ValueError(f'max_disp must be an integer in [1, image width {width}], '
+                         f'got {max_disp!r}')
 
 
 def check_window(cost, window):
@@ -62,8 +64,12 @@ def _popcount(v):
 
 @njit(parallel=True, cache=True)
 def _census_transform(padded, rad):
-    """Bit strings of the image inside `padded` (padded by `rad` on every side), built a
-    neighbour offset at a time over whole rows, so the inner loop vectorizes."""
+    """
+    Return the bit strings of the image inside `padded` (padded by `rad` on every side).
+
+    They are built a neighbour offset at a time over whole rows, so the inner loop
+    vectorizes.
+    """
     h, w = padded.shape[0] - 2 * rad, padded.shape[1] - 2 * rad
     out = np.zeros((2, h, w), np.uint64)
     for y in prange(h):
@@ -83,7 +89,8 @@ def _census_transform(padded, rad):
 
 
 def census_transform(gray, window=9):
-    """Census bit strings of a gray image: uint64 array (2, H, W), low and high words.
+    """
+    Return the Census bit strings of a gray image: uint64 array (2, H, W), low and high words.
 
     Bit k (raster order over the window, centre skipped) is 1 where that neighbour is darker
     than the centre. Outside the image the edge pixel is repeated (such cells are invalid in
@@ -103,7 +110,8 @@ def _census_cost(cl, cr_rev, ndisp, rad, scale, invalid, out):
         right_lo = cr_rev[0, y]
         right_hi = cr_rev[1, y]
         for x in range(w):
-            nvalid = min(ndisp, x - rad + 1) if row_ok and rad <= x < w - rad else 0  # d <= x - rad
+            # d <= x - rad
+            nvalid = min(ndisp, x - rad + 1) if row_ok and rad <= x < w - rad else 0
             lo = cl[0, y, x]
             hi = cl[1, y, x]
             r_lo = right_lo[w - 1 - x:]  # r_lo[d] = right word at x - d
@@ -152,7 +160,8 @@ def _sad_cost(left, right_rev, ndisp, rad, scale, invalid, out):
 
 
 def output_array(out, shape, dtype=np.float32):
-    """`out` if it is a C-contiguous `dtype` array of `shape`, a new one if `out` is None.
+    """
+    Return `out` if it is a C-contiguous `dtype` array of `shape`, a new one if `out` is None.
 
     Streaming callers pass the array of the previous frame back: a fresh (H, W, D) volume
     costs a page fault per 4 KiB on first touch (a KITTI volume is 238 MB).
@@ -165,9 +174,13 @@ def output_array(out, shape, dtype=np.float32):
     return out
 
 
-def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=1, dtype=np.float32):
-    """Matching cost volume (H, W, max_disp) of a rectified pair (see module doc), each cost
-    times the integer `scale`, in `dtype`: float32, or uint16 for Census.
+def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=1,
+                dtype=np.float32):
+    """
+    Return the matching cost volume (H, W, max_disp) of a rectified pair (see module doc).
+
+    Each cost is multiplied by the integer `scale`; the volume is in `dtype`: float32, or
+    uint16 for Census.
 
     `left`, `right`: same-size gray or RGB arrays (uint8, uint16 or float). `out`: an array
     to write the volume into (see `output_array`).
@@ -178,9 +191,11 @@ def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=
     dtype = np.dtype(dtype)
     if dtype == np.uint16:
         if cost != 'census':
-            raise ValueError(f'uint16 volumes hold Census costs only (SAD costs are fractional), got {cost!r}')
+            raise ValueError('uint16 volumes hold Census costs only (SAD costs are fractional), '
+                             f'got {cost!r}')
         if max_cost(cost, window) * scale > UINT16_MAX:
-            raise ValueError(f'Census costs up to {max_cost(cost, window):g} times scale {scale} do not fit in 16 bits')
+            raise ValueError(f'Census costs up to {max_cost(cost, window):g} times scale {scale} '
+                             'do not fit in 16 bits')
     elif dtype != np.float32:
         raise ValueError(f'dtype must be float32 or uint16, got {dtype}')
     lg, rg = gray_pair(left, right)
@@ -191,8 +206,10 @@ def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=
     # so d = 0, 1, ... is a forward run, and their inner loops vectorize.
     if cost == 'census':
         right_rev = np.ascontiguousarray(census_transform(rg, window)[:, :, ::-1])
-        _census_cost(census_transform(lg, window), right_rev, int(max_disp), window // 2, int(scale), invalid, out)
+        _census_cost(census_transform(lg, window), right_rev, int(max_disp), window // 2,
+                     int(scale), invalid, out)
     else:
         right_rev = np.ascontiguousarray(standardize(rg)[:, ::-1])
-        _sad_cost(standardize(lg), right_rev, int(max_disp), window // 2, np.float32(scale), invalid, out)
+        _sad_cost(standardize(lg), right_rev, int(max_disp), window // 2, np.float32(scale),
+                  invalid, out)
     return out

@@ -1,6 +1,6 @@
 """Ground control points (GCPs) and the paper's cost refinement."""
-import numpy as np
 from numba import njit, prange
+import numpy as np
 
 from .cost import UINT16_MAX
 
@@ -19,9 +19,12 @@ def _refine(cost, gcp, cof_d, c_hi, c_low):
 
 
 def right_view_agrees(disp, disp_right, tol):
-    """Where the right view confirms the left disparity d = `disp` (H, W): the right
-    disparity `disp_right` at x - round(d) lies within `tol` of d (False where x - round(d)
-    is left of the image)."""
+    """
+    Return where the right view confirms the left disparity d = `disp` (H, W).
+
+    That is where the right disparity `disp_right` at x - round(d) lies within `tol` of d
+    (False where x - round(d) is left of the image).
+    """
     w = disp.shape[1]
     xr = np.arange(w) - np.rint(disp).astype(np.int64)
     back = np.take_along_axis(disp_right, np.clip(xr, 0, w - 1), axis=1)
@@ -29,12 +32,17 @@ def right_view_agrees(disp, disp_right, tol):
 
 
 def select(cof_c, cof_d, cof_dr, theta, lr_check=False):
-    """GCP mask: pixels whose CNN confidence `cof_c` exceeds `theta` (the paper's rule). With
-    `lr_check` also only those whose CNN disparity d the right view confirms: its own CNN
-    disparity `cof_dr` at x - d is within 1 px of d (at theta 0.8 this raised GCP accuracy
-    from 77.7 to 86.8 % on KITTI 000070 and from 91.0 to 94.9 % on Motorcycle)."""
+    """
+    Return the GCP mask: pixels whose CNN confidence `cof_c` exceeds `theta`.
+
+    That is the paper's rule. With `lr_check` also only those whose CNN disparity d the right
+    view confirms: its own CNN disparity `cof_dr` at x - d is within 1 px of d (at theta 0.8
+    this raised GCP accuracy from 77.7 to 86.8 % on KITTI 000070 and from 91.0 to 94.9 % on
+    Motorcycle).
+    """
     if not cof_c.shape == cof_d.shape == cof_dr.shape:
-        raise ValueError(f'cof_c {cof_c.shape}, cof_d {cof_d.shape} and cof_dr {cof_dr.shape} must have one shape')
+        raise ValueError(f'cof_c {cof_c.shape}, cof_d {cof_d.shape} and cof_dr {cof_dr.shape} '
+                         'must have one shape')
     gcp = cof_c > theta
     if lr_check:
         gcp &= right_view_agrees(cof_d, cof_dr, 1)
@@ -42,8 +50,10 @@ def select(cof_c, cof_d, cof_dr, theta, lr_check=False):
 
 
 def refine(cost, gcp, cof_d, c_hi, c_low):
-    """Refine a cost volume (float32, or uint16 with integer `c_hi` and `c_low`) in place,
-    as the paper does, and return it.
+    """
+    Refine a cost volume in place, as the paper does, and return it.
+
+    The volume is float32, or uint16 with integer `c_hi` and `c_low`.
 
     Every non-GCP pixel gets `c_hi` at all disparities; a GCP keeps its costs except
     `c_low` at its CNN disparity `cof_d`.
@@ -51,17 +61,22 @@ def refine(cost, gcp, cof_d, c_hi, c_low):
     if gcp.shape != cost.shape[:2] or cof_d.shape != cost.shape[:2]:
         raise ValueError(f'GCP mask {gcp.shape} and CNN disparity {cof_d.shape} must match '
                          f'the cost volume {cost.shape[:2]}')
-    if cost.dtype == np.uint16 and not all(float(v).is_integer() and 0 <= v <= UINT16_MAX for v in (c_hi, c_low)):
-        raise ValueError(f'a uint16 cost volume needs integer C_hi and C_low in [0, {UINT16_MAX}], '
-                         f'got {c_hi}, {c_low}')
+    if cost.dtype == np.uint16 and not all(float(v).is_integer() and 0 <= v <= UINT16_MAX
+                                           for v in (c_hi, c_low)):
+        raise ValueError('a uint16 cost volume needs integer C_hi and C_low in '
+                         f'[0, {UINT16_MAX}], got {c_hi}, {c_low}')
     _refine(cost, np.ascontiguousarray(gcp, np.bool_), np.ascontiguousarray(cof_d, np.int32),
             cost.dtype.type(c_hi), cost.dtype.type(c_low))
     return cost
 
 
 def gcp_quality(gcp, cof_d, gt, valid):
-    """(density, accuracy) in percent: GCPs among the evaluated pixels, and GCPs whose CNN
-    disparity is within 3 px of the ground truth (NaN when there is no GCP)."""
+    """
+    Return (density, accuracy) in percent.
+
+    Density: GCPs among the evaluated pixels; accuracy: GCPs whose CNN disparity is within
+    3 px of the ground truth (NaN when there is no GCP).
+    """
     sel = gcp & valid
     n = int(sel.sum())
     density = 100.0 * n / max(int(valid.sum()), 1)

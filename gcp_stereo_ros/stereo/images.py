@@ -6,21 +6,24 @@ _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
 def to_gray(image, name='image'):
-    """Return `image` as a float32 (H, W) gray array.
+    """
+    Return `image` as a float32 (H, W) gray array.
 
     Accepts uint8, uint16 or float arrays, gray (H, W) or (H, W, 1), RGB (H, W, 3) or
     RGBA (H, W, 4, alpha ignored). Channel order is RGB; convert BGR before calling.
     Raises ValueError naming `name` for anything else, including NaN or inf values.
     """
     a = np.asarray(image)
-    if a.dtype == np.bool_ or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
+    if a.dtype == np.bool_ or not (np.issubdtype(a.dtype, np.integer)
+                                   or np.issubdtype(a.dtype, np.floating)):
         raise ValueError(f'{name}: unsupported dtype {a.dtype}; expected uint8, uint16 or float')
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[:, :, 0]
     if a.ndim == 3 and a.shape[2] in (3, 4):
         a = a[:, :, :3].astype(np.float32) @ _LUMA
     elif a.ndim != 2:
-        raise ValueError(f'{name}: expected a gray (H, W) or RGB (H, W, 3) image, got shape {a.shape}')
+        raise ValueError(f'{name}: expected a gray (H, W) or RGB (H, W, 3) image, '
+                         f'got shape {a.shape}')
     if a.shape[0] == 0 or a.shape[1] == 0:
         raise ValueError(f'{name}: empty image of shape {a.shape}')
     a = np.ascontiguousarray(a, dtype=np.float32)
@@ -34,7 +37,8 @@ def gray_pair(left, right):
     lg, rg = to_gray(left, 'left image'), to_gray(right, 'right image')
     if lg.shape != rg.shape:
         raise ValueError(f'left image is {lg.shape[1]}x{lg.shape[0]} but right image is '
-                         f'{rg.shape[1]}x{rg.shape[0]} (width x height); a rectified pair has one size')
+                         f'{rg.shape[1]}x{rg.shape[0]} (width x height); '
+                         'a rectified pair has one size')
     return lg, rg
 
 

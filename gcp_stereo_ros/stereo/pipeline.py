@@ -1,23 +1,24 @@
-"""The one stereo pipeline every caller uses: evaluation, the ROS node and the bag tools.
+"""
+The one stereo pipeline every caller uses: evaluation, the ROS node and the bag tools.
 
 cost volume -> (CNN confidence -> GCPs -> refinement) -> SGM -> winner-takes-all.
 """
 import dataclasses
+from dataclasses import dataclass
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
 from . import cost as cost_mod
 from .gcp import refine, select
 from .images import gray_pair
-from .sgm import PATHS, aggregate, disparity, path_sum_bound
+from .sgm import aggregate, disparity, path_sum_bound, PATHS
 
 # The paper's parameters for each matching cost (Zhong et al., section 4).
 COST_DEFAULTS = {
-    'census': dict(p1=4.0, p2=128.0, theta=0.60, c_hi=200.0, c_low=1.3),
-    'sad': dict(p1=1.0, p2=14.0, theta=0.55, c_hi=5.0, c_low=0.001),
+    'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3},
+    'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001},
 }
 
 
@@ -33,7 +34,8 @@ class StereoConfig:
     theta: float = COST_DEFAULTS['census']['theta']
     c_hi: float = COST_DEFAULTS['census']['c_hi']
     c_low: float = COST_DEFAULTS['census']['c_low']
-    gcp_lr_check: bool = False  # GCPs only where the right view's CNN disparity agrees (not in the paper)
+    # GCPs only where the right view's CNN disparity agrees (not in the paper).
+    gcp_lr_check: bool = False
     weights: str = ''  # '' = the weights shipped with the package
     device: str = 'cpu'
     bf16: bool = False  # bfloat16 CNN descriptors (CPUs with avx512_bf16 / AMX, or CUDA)
@@ -43,7 +45,7 @@ class StereoConfig:
 
     @classmethod
     def for_cost(cls, cost, **overrides):
-        """A config with the paper's defaults for `cost`, then `overrides` applied."""
+        """Return a config with the paper's defaults for `cost`, then `overrides` applied."""
         if cost not in COST_DEFAULTS:
             raise ValueError(f'cost must be one of {tuple(COST_DEFAULTS)}, got {cost!r}')
         return cls(**{'cost': cost, **COST_DEFAULTS[cost], **overrides}).validate()
@@ -55,7 +57,8 @@ class StereoConfig:
         """Return self, or raise ValueError saying which value is out of range and why."""
         cost_mod.check_window(self.cost, self.window)
         if not (isinstance(self.max_disp, (int, np.integer)) and 1 <= self.max_disp <= 1024):
-            raise ValueError(f'max_disp must be an integer in [1, 1024], got {self.max_disp!r}')
+            raise ValueError(f'max_disp must be an integer in [1, 1024], '
+                             f'got {self.max_disp!r}')
         for name in ('p1', 'p2', 'theta', 'c_hi', 'c_low'):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
@@ -66,7 +69,8 @@ class StereoConfig:
         if self.paths not in PATHS:
             raise ValueError(f'paths must be one of {PATHS}, got {self.paths!r}')
         if self.theta > 1:
-            raise ValueError(f'theta must be in [0, 1] (the CNN confidence range), got {self.theta}')
+            raise ValueError('theta must be in [0, 1] (the CNN confidence range), '
+                             f'got {self.theta}')
         if self.c_low > self.c_hi:
             raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
         if not (self.device == 'cpu' or self.device.startswith('cuda')):
@@ -85,12 +89,15 @@ class StereoResult:
 
 
 def fixed_point_scale(cfg):
-    """The smallest integer s that makes s * (Census costs, P1, P2, and C_hi, C_low with GCPs)
-    integers whose path sums, at most paths * s * (max cost + P2), fit in uint16 (s = 10 for
-    the paper's C_low = 1.3), or None (SAD, or values such as C_low = 1.2345, which would
-    need s = 2000). With an s the pipeline keeps its volumes in uint16: half the memory,
-    faster SGM, exact integer arithmetic; the disparities equal the float32 path's except
-    where float32 rounding of a fractional value breaks a tie.
+    """
+    Return the smallest integer s that allows fixed-point uint16 volumes, or None.
+
+    s makes s * (Census costs, P1, P2, and C_hi, C_low with GCPs) integers whose path sums,
+    at most paths * s * (max cost + P2), fit in uint16 (s = 10 for the paper's C_low = 1.3);
+    None for SAD, or values such as C_low = 1.2345, which would need s = 2000. With an s
+    the pipeline keeps its volumes in uint16: half the memory, faster SGM, exact integer
+    arithmetic; the disparities equal the float32 path's except where float32 rounding of a
+    fractional value breaks a tie.
     """
     if cfg.cost != 'census':
         return None
@@ -103,7 +110,8 @@ def fixed_point_scale(cfg):
 
 
 class StereoPipeline:
-    """Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
+    """
+    Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
 
     The cost volume and the summed path costs are written into two arrays kept from the
     previous call of the same size and type (two fresh (H, W, D) arrays per frame would cost
@@ -116,14 +124,21 @@ class StereoPipeline:
         self._workspace = {} if _workspace is None else _workspace
 
     def with_config(self, config):
-        """A pipeline for `config` that keeps this one's CNN when weights and device match,
-        and its arrays (the two pipelines must then not run at the same time)."""
+        """
+        Return a pipeline for `config` that keeps this one's arrays and, if it can, its CNN.
+
+        The CNN is kept when weights and device match; the arrays always are (the two
+        pipelines must then not run at the same time).
+        """
         same = (config.weights, config.device) == (self.config.weights, self.config.device)
         return StereoPipeline(config, self._net if same else None, self._workspace)
 
     def _array(self, name, shape, dtype):
-        """The kept array `name` if it has `shape` and `dtype`, else None (the callee
-        allocates; kept then)."""
+        """
+        Return the kept array `name` if it has `shape` and `dtype`, else None.
+
+        With None the callee allocates; that array is kept then.
+        """
         a = self._workspace.get(name)
         return a if a is not None and a.shape == shape and a.dtype == dtype else None
 
@@ -135,8 +150,12 @@ class StereoPipeline:
         return self._net
 
     def __call__(self, left, right, confidence=None):
-        """StereoResult of a pair. `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same
-        pair and max_disp, to sweep GCP/SGM parameters without running the CNN again."""
+        """
+        Return the StereoResult of a pair.
+
+        `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair and max_disp,
+        to sweep GCP/SGM parameters without running the CNN again.
+        """
         cfg = self.config
         net = self.net if cfg.use_gcp and confidence is None else None
         seconds = {}
@@ -152,11 +171,13 @@ class StereoPipeline:
         gcp = cof_c = cof_d = cof_dr = None
         if net is not None:
             from .cnn import confidence as cnn_confidence
-            confidence = cnn_confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16, seconds=seconds)
+            confidence = cnn_confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16,
+                                        seconds=seconds)
             t = time.perf_counter()
         if cfg.use_gcp:
             if len(confidence) != 3:
-                raise ValueError('confidence must be (cof_c, cof_d, cof_dr), as StereoResult holds them')
+                raise ValueError('confidence must be (cof_c, cof_d, cof_dr), '
+                                 'as StereoResult holds them')
             cof_c, cof_d, cof_dr = confidence
         shape = left.shape + (cfg.max_disp,)
         scale = fixed_point_scale(cfg)
@@ -169,7 +190,8 @@ class StereoPipeline:
             gcp = select(cof_c, cof_d, cof_dr, cfg.theta, cfg.gcp_lr_check)
             refine(volume, gcp, cof_d, fixed(cfg.c_hi), fixed(cfg.c_low))
             lap('refine')
-        total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, self._array('total', shape, dtype))
+        total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths,
+                          self._array('total', shape, dtype))
         self._workspace.update(cost=volume, total=total)
         lap('sgm')
         disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)

@@ -1,4 +1,5 @@
-"""Semi-global matching (Hirschmueller 2008) on a cost volume (H, W, D).
+"""
+Semi-global matching (Hirschmueller 2008) on a cost volume (H, W, D).
 
 Path cost along direction r = (dx, dy), with p - r the previous pixel on the path:
     L_r(p, d) = C(p, d) + min(L_r(p-r, d), L_r(p-r, d+-1) + P1, min_k L_r(p-r, k) + P2)
@@ -17,18 +18,22 @@ integer penalties). uint16 is exact and halves the memory traffic, which bounds 
 it needs paths * (max C + P2) <= 65535, since L_r <= C + P2 and S sums `paths` of them.
 """
 import cv2
-import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
+import numpy as np
 
-from .cost import UINT16_MAX, output_array
+from .cost import output_array, UINT16_MAX
 
 PATHS = (4, 8, 16)
 
 
 def directions(paths):
-    """Path directions (dx, dy) with dy >= 0 (from above or along the row; the sweeps add
-    the mirrored ones). Raises ValueError unless `paths` is 4, 8 or 16."""
+    """
+    Return the (dx, dy) path directions with dy >= 0.
+
+    These are the paths from above or along the row; the sweeps add the mirrored ones.
+    Raises ValueError unless `paths` is 4, 8 or 16.
+    """
     if paths not in PATHS:
         raise ValueError(f'paths must be one of {PATHS}, got {paths!r}')
     dirs = [(1, 0), (0, 1)]
@@ -40,13 +45,17 @@ def directions(paths):
 
 
 def path_sum_bound(paths, max_cost, p2):
-    """The largest value S can take: each path's L_r <= C + P2."""
+    """Return the largest value S can take: each path's L_r <= C + P2."""
     return paths * (max_cost + p2)
 
 
 def _keys(v):
-    """v as an array that orders like it and whose min reduction vectorizes: the int32 bits
-    of non-negative float32 values (LLVM leaves a float min reduction scalar), else v."""
+    """
+    Return v as an array that orders like it and whose min reduction vectorizes.
+
+    That is the int32 bits of non-negative float32 values (LLVM leaves a float min reduction
+    scalar), else v.
+    """
     raise NotImplementedError('for numba-compiled code only')
 
 
@@ -58,7 +67,7 @@ def _keys_impl(v):
 
 
 def _as(like, x):
-    """x converted to the element type of the array `like`."""
+    """Return x converted to the element type of the array `like`."""
     raise NotImplementedError('for numba-compiled code only')
 
 
@@ -70,7 +79,7 @@ def _as_impl(like, x):
 
 @njit(inline='always', fastmath=True)
 def _min_key(v):
-    """The key (see `_keys`) of min(v), v >= 0."""
+    """Return the key (see `_keys`) of min(v), v >= 0."""
     keys = _keys(v)
     m = keys[0]
     for d in range(1, keys.shape[0]):
@@ -81,8 +90,12 @@ def _min_key(v):
 
 @njit(inline='always', fastmath=True)
 def _path_step(c, prev, prev_min, p1, p2, out):
-    """out = L_r(p, .) from c = C(p, .) and prev = L_r(p - r, .); returns the key of min(out).
-    Each value is cast back to the volume's type, so uint16 math stays 16 bits wide."""
+    """
+    Compute out = L_r(p, .) from c = C(p, .) and prev = L_r(p - r, .).
+
+    Return the key of min(out). Each value is cast back to the volume's type, so uint16 math
+    stays 16 bits wide.
+    """
     nd = c.shape[0]
     jump = _as(out, prev_min + p2)
     if nd == 1:
@@ -92,13 +105,15 @@ def _path_step(c, prev, prev_min, p1, p2, out):
         for d in range(1, nd - 1):
             step = _as(out, min(prev[d - 1], prev[d + 1]) + p1)
             out[d] = _as(out, c[d] + min(min(prev[d], step), jump) - prev_min)
-        out[nd - 1] = _as(out, c[nd - 1] + min(min(prev[nd - 1], _as(out, prev[nd - 2] + p1)), jump) - prev_min)
+        out[nd - 1] = _as(out, c[nd - 1]
+                          + min(min(prev[nd - 1], _as(out, prev[nd - 2] + p1)), jump)
+                          - prev_min)
     return _min_key(out)
 
 
 @njit(parallel=True, cache=True, fastmath=True)
 def _horizontal(cost, p1, p2, total):
-    """total = L_(1,0) + L_(-1,0): both horizontal paths of each row."""
+    """Set total = L_(1,0) + L_(-1,0): both horizontal paths of each row."""
     h, w, nd = cost.shape
     for y in prange(h):
         a = np.empty(nd, cost.dtype)
@@ -125,7 +140,7 @@ def _horizontal(cost, p1, p2, total):
 
 @njit(parallel=True, cache=True, fastmath=True)
 def _sweep(cost, p1, p2, total, dirs, down):
-    """total += L_r for each r in dirs; dy > 0 counts rows back in sweep order."""
+    """Accumulate total += L_r for each r in dirs; dy > 0 counts rows back in sweep order."""
     h, w, nd = cost.shape
     buf = np.empty((dirs.shape[0], 3, w, nd), cost.dtype)
     mins = np.empty((dirs.shape[0], 3, w), cost.dtype)  # min_d of each buf row
@@ -142,7 +157,8 @@ def _sweep(cost, p1, p2, total, dirs, down):
                 cur = buf[k, slot, x]
                 if back >= 0 and 0 <= px < w:
                     ps = back % 3
-                    min_keys[k, slot, x] = _path_step(c, buf[k, ps, px], mins[k, ps, px], p1, p2, cur)
+                    min_keys[k, slot, x] = _path_step(c, buf[k, ps, px], mins[k, ps, px],
+                                                      p1, p2, cur)
                 else:
                     cur[:] = c
                     min_keys[k, slot, x] = _min_key(c)
@@ -152,7 +168,7 @@ def _sweep(cost, p1, p2, total, dirs, down):
 
 @njit(parallel=True, cache=True)
 def _scan(cost):
-    """(number of cells that are negative, NaN or infinite, largest value)."""
+    """Return (number of cells that are negative, NaN or infinite, largest value)."""
     flat = cost.reshape(-1)
     n = 0
     top = np.zeros(1, flat.dtype)[0]
@@ -165,13 +181,19 @@ def _scan(cost):
 
 
 def as_volume(a):
-    """`a` as a C-contiguous volume SGM takes: uint16 stays uint16, the rest becomes float32."""
+    """
+    Return `a` as a C-contiguous volume SGM takes.
+
+    uint16 stays uint16, the rest becomes float32.
+    """
     return np.ascontiguousarray(a, dtype=np.uint16 if a.dtype == np.uint16 else np.float32)
 
 
 def aggregate(cost, p1, p2, paths=16, out=None):
-    """Summed path costs S (H, W, D) of a cost volume (see module doc), of the volume's type:
-    uint16 for a uint16 volume, else float32.
+    """
+    Return the summed path costs S (H, W, D) of a cost volume (see module doc).
+
+    S has the volume's type: uint16 for a uint16 volume, else float32.
 
     Costs must be finite and >= 0 (every matching cost here is); ValueError otherwise. For
     uint16, P1 and P2 must be integers and paths * (max cost + P2) at most 65535.
@@ -179,7 +201,8 @@ def aggregate(cost, p1, p2, paths=16, out=None):
     """
     cost = as_volume(np.asarray(cost))
     if cost.ndim != 3 or 0 in cost.shape:
-        raise ValueError(f'cost volume must have shape (H, W, D) with no empty axis, got {cost.shape}')
+        raise ValueError('cost volume must have shape (H, W, D) with no empty axis, '
+                         f'got {cost.shape}')
     bad, top = _scan(cost)
     if bad:
         raise ValueError(f'cost volume has {bad} cells that are negative, NaN or infinite; '
@@ -192,8 +215,9 @@ def aggregate(cost, p1, p2, paths=16, out=None):
         if not (p1.is_integer() and p2.is_integer()):
             raise ValueError(f'a uint16 cost volume needs integer penalties, got P1={p1}, P2={p2}')
         if path_sum_bound(paths, int(top), p2) > UINT16_MAX:
-            raise ValueError(f'uint16 path sums would overflow: {paths} paths * (max cost {top} + P2 {p2:g}) '
-                             f'> {UINT16_MAX}; use a float32 volume')
+            raise ValueError(f'uint16 path sums would overflow: {paths} paths * '
+                             f'(max cost {top} + P2 {p2:g}) > {UINT16_MAX}; '
+                             'use a float32 volume')
     total = output_array(out, cost.shape, cost.dtype)
     if np.shares_memory(total, cost):
         raise ValueError('out must not overlap the cost volume')
@@ -225,7 +249,8 @@ def _wta(total, subpixel, lr_tol, out, consistent):
                 if curv > 0:
                     disp += (lo - hi) / (2 * curv)
             if lr_tol >= 0:
-                # Right-view WTA at xr = x - best: argmin_d S(xr + d, d) over cells inside the image.
+                # Right-view WTA at xr = x - best: argmin_d S(xr + d, d) over cells inside the
+                # image.
                 xr = x - best
                 rbest = 0
                 for d in range(1, min(nd, w - xr)):
@@ -236,8 +261,11 @@ def _wta(total, subpixel, lr_tol, out, consistent):
 
 
 def disparity(total, subpixel=False, lr_check=False, median=False):
-    """Winner-takes-all disparity (H, W) float32 from summed path costs S (uint16, or finite
-    and >= 0 as `aggregate` returns them; ValueError otherwise), first minimum on ties.
+    """
+    Return the winner-takes-all disparity, float32 (H, W), from summed path costs S.
+
+    S is uint16, or finite and >= 0 as `aggregate` returns them (ValueError otherwise); the
+    first minimum wins on ties.
 
     Options (all off by default; the paper uses none): `subpixel` parabola fit through the
     minimum and its neighbours; `median` 3x3 median filter; `lr_check` marks NaN where the

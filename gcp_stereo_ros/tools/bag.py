@@ -1,4 +1,5 @@
-"""gcp-stereo-bag: rosbag2 tools for gcp_stereo_node, no ROS install needed (rosbags, rclpy).
+"""
+gcp-stereo-bag: rosbag2 tools for gcp_stereo_node, no ROS install needed (rosbags, rclpy).
 
   make  stereo pairs of a dataset -> a bag with the node's input topics and the ground truth
   run   bag in -> bag out with the node's outputs, computed offline exactly as the node does
@@ -27,31 +28,32 @@ subscribed), stamped with the left header and written at the bag timestamp of th
 completed the pair. Bags are written to a hidden sibling and renamed into place on success.
 """
 import argparse
+from contextlib import contextmanager
 import importlib
 import os
+from pathlib import Path
 import shutil
 import sys
 import time
-from contextlib import contextmanager
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                QosTime)
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.errors import WriterError
-from rosbags.typesys import Stores, TypesysError, get_typestore
+from rosbags.typesys import get_typestore, Stores, TypesysError
 from tqdm import tqdm
 
-from ..ros import messages
 from ..evaluation.datasets import list_frames, load_frames
-from ..evaluation.metrics import THRESHOLDS, error_rates
+from ..evaluation.metrics import error_rates, THRESHOLDS
+from ..evaluation.viz import colorize, save_png
+from ..ros import messages
 from ..ros.params import config_from_params, load_params_file, make_sync
-from ..stereo.pipeline import StereoPipeline
 from ..ros.rosimage import image_to_array
 from ..ros.sync import SIDES
-from ..evaluation.viz import colorize, save_png
 from ..stereo.images import mask_image
+from ..stereo.pipeline import StereoPipeline
 
 PROG = 'gcp-stereo-bag'
 IMAGE, INFO, STRING = 'sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'std_msgs/msg/String'
@@ -71,9 +73,10 @@ def _qos(reliability, depth):
 SENSOR_QOS = _qos(QosReliability.BEST_EFFORT, 5)  # rclpy's qos_profile_sensor_data
 DEFAULT_QOS = _qos(QosReliability.RELIABLE, 10)  # rclpy's default publisher QoS
 NODE_OUT_QOS = _qos(QosReliability.RELIABLE, 5)  # the node's publishers
-INPUTS = {f'{side}/{kind}': (msgtype, SENSOR_QOS) for kind, msgtype in (('image_rect', IMAGE), ('camera_info', INFO))
-          for side in SIDES}
-GT = {'gt/frame_name': (STRING, DEFAULT_QOS), 'gt/disparity': (IMAGE, DEFAULT_QOS), 'gt/valid': (IMAGE, DEFAULT_QOS)}
+INPUTS = {f'{side}/{kind}': (msgtype, SENSOR_QOS)
+          for kind, msgtype in (('image_rect', IMAGE), ('camera_info', INFO)) for side in SIDES}
+GT = {'gt/frame_name': (STRING, DEFAULT_QOS), 'gt/disparity': (IMAGE, DEFAULT_QOS),
+      'gt/valid': (IMAGE, DEFAULT_QOS)}
 OUTPUTS = {'disparity': DISPARITY, 'gcp_mask': IMAGE, 'confidence': IMAGE}
 MATCH_SETTLE_SECONDS = 3.0  # see wait_for_subscribers
 # Before exiting: a player exiting right after publishing lost its last best-effort
@@ -82,7 +85,11 @@ LINGER_SECONDS = 1.0
 
 
 def topic_name(namespace, name):
-    """`name` under `namespace` as an absolute topic: ('stereo', 'left/image_rect') -> /stereo/left/image_rect."""
+    """
+    Return `name` under `namespace` as an absolute topic.
+
+    E.g. ('stereo', 'left/image_rect') -> /stereo/left/image_rect.
+    """
     ns = namespace.strip('/')
     return f'/{ns}/{name}' if ns else f'/{name}'
 
@@ -95,7 +102,7 @@ def _header(stamp_ns, frame_id):
 # ---- bag files --------------------------------------------------------------------------
 @contextmanager
 def open_bag(path):
-    """An open rosbags Reader; any failure to open it is a ValueError naming `path`."""
+    """Yield an open rosbags Reader; any failure to open it is a ValueError naming `path`."""
     try:
         reader = Reader(path)
         reader.open()
@@ -108,8 +115,11 @@ def open_bag(path):
 
 
 def read_messages(reader, path):
-    """Yield (connection, bag timestamp ns, raw CDR bytes) of every message; a truncated or
-    corrupt storage file is a ValueError naming `path`."""
+    """
+    Yield (connection, bag timestamp ns, raw CDR bytes) of every message.
+
+    A truncated or corrupt storage file is a ValueError naming `path`.
+    """
     stream = reader.messages()
     while True:
         try:
@@ -131,8 +141,12 @@ def deserialize(raw, connection, timestamp, path):
 
 @contextmanager
 def output_bag(out, storage, force):
-    """A rosbags Writer on a hidden staging sibling of `out`, moved to `out` only if the block
-    succeeds; the staging folder is removed either way. An existing `out` needs `force`."""
+    """
+    Yield a rosbags Writer on a hidden staging sibling of `out`.
+
+    The bag is moved to `out` only if the block succeeds; the staging folder is removed either
+    way. An existing `out` needs `force`.
+    """
     out = Path(out)
     if out.exists() and not force:
         raise ValueError(f'{out} exists; pass --force to replace it')
@@ -153,7 +167,11 @@ def output_bag(out, storage, force):
 
 # ---- make -------------------------------------------------------------------------------
 def camera_info(header, frame, side):
-    """CameraInfo of a rectified camera of `frame`: K = P = 0 unless the focal length is known."""
+    """
+    Return the CameraInfo of a rectified camera of `frame`.
+
+    K = P = 0 unless the focal length is known.
+    """
     h, w = frame.left.shape[:2]
     f = frame.focal_px or 0.0
     tx = -f * (frame.baseline_m or 0.0) if side == 'right' else 0.0
@@ -172,9 +190,10 @@ def frame_messages(frame, stamp_ns):
         known = np.isfinite(frame.gt)
         valid = known if frame.valid is None else known & frame.valid
         msgs['gt/frame_name'] = TYPES.String(data=frame.name)
-        msgs['gt/disparity'] = messages.image_message(TYPES, headers['left'], np.where(known, frame.gt, 0),
-                                                      '32FC1')
-        msgs['gt/valid'] = messages.image_message(TYPES, headers['left'], mask_image(valid), 'mono8')
+        msgs['gt/disparity'] = messages.image_message(TYPES, headers['left'],
+                                                      np.where(known, frame.gt, 0), '32FC1')
+        msgs['gt/valid'] = messages.image_message(TYPES, headers['left'], mask_image(valid),
+                                                  'mono8')
     for side in SIDES:
         msgs[f'{side}/camera_info'] = camera_info(headers[side], frame, side)
     for side in SIDES:
@@ -189,8 +208,8 @@ def make(args):
     period_ns = round(1e9 / args.rate)
     start_ns = time.time_ns()
     with output_bag(args.out, args.storage, args.force) as writer:
-        conns = {name: writer.add_connection(topic_name(args.namespace, name), msgtype, typestore=TYPESTORE,
-                                             offered_qos_profiles=[qos])
+        conns = {name: writer.add_connection(topic_name(args.namespace, name), msgtype,
+                                             typestore=TYPESTORE, offered_qos_profiles=[qos])
                  for name, (msgtype, qos) in {**GT, **INPUTS}.items()}
         frames = load_frames(args.dataset, names)
         for i, frame in enumerate(tqdm(frames, total=len(names), unit='frame', leave=False)):
@@ -202,14 +221,19 @@ def make(args):
 
 # ---- run --------------------------------------------------------------------------------
 def check_topics(reader, path, namespace):
-    """{topic: name without namespace} of the inputs and ground truth `run` reads. Raises
-    ValueError unless both image topics exist, or if a known topic has the wrong type."""
-    wanted = {topic_name(namespace, name): (name, msgtype) for name, (msgtype, _) in {**INPUTS, **GT}.items()}
+    """
+    Return {topic: name without namespace} of the inputs and ground truth `run` reads.
+
+    Raises ValueError unless both image topics exist, or if a known topic has the wrong type.
+    """
+    wanted = {topic_name(namespace, name): (name, msgtype)
+              for name, (msgtype, _) in {**INPUTS, **GT}.items()}
     topics = {c.topic: c.msgtype for c in reader.connections}
     for side in SIDES:
         topic = topic_name(namespace, f'{side}/image_rect')
         if topic not in topics:
-            raise ValueError(f'{path}: no {topic} topic (topics: {", ".join(sorted(topics)) or "none"}); '
+            raise ValueError(f'{path}: no {topic} topic '
+                             f'(topics: {", ".join(sorted(topics)) or "none"}); '
                              'set --namespace if the images are under one')
     for topic, msgtype in topics.items():
         if topic in wanted and msgtype != wanted[topic][1]:
@@ -229,7 +253,8 @@ class Runner:
 
     def __init__(self, pipeline, sync, writer, namespace, png_dir):
         self.pipeline, self.sync, self.writer, self.png_dir = pipeline, sync, writer, png_dir
-        self.conns = {name: writer.add_connection(topic_name(namespace, name), msgtype, typestore=TYPESTORE,
+        self.conns = {name: writer.add_connection(topic_name(namespace, name), msgtype,
+                                                  typestore=TYPESTORE,
                                                   offered_qos_profiles=[NODE_OUT_QOS])
                       for name, msgtype in OUTPUTS.items()}
         self.topics = {name: topic_name(namespace, name) for name in INPUTS}
@@ -256,19 +281,23 @@ class Runner:
         result = self.pipeline(left, right)
         header = left_msg.header
         geom = messages.geometry(self.info['left'], self.info['right'])
-        out = {'disparity': messages.disparity_message(TYPES, header, result.disparity, config, geom)}
+        out = {'disparity': messages.disparity_message(TYPES, header, result.disparity,
+                                                       config, geom)}
         if result.gcp is not None:
-            out['gcp_mask'] = messages.image_message(TYPES, header, mask_image(result.gcp), 'mono8')
+            out['gcp_mask'] = messages.image_message(TYPES, header, mask_image(result.gcp),
+                                                     'mono8')
             out['confidence'] = messages.image_message(TYPES, header, result.cof_c, '32FC1')
         for name, msg in out.items():
-            self.writer.write(self.conns[name], timestamp, TYPESTORE.serialize_cdr(msg, OUTPUTS[name]))
+            self.writer.write(self.conns[name], timestamp,
+                              TYPESTORE.serialize_cdr(msg, OUTPUTS[name]))
 
         gt = self.gt.pop(stamp, {})
         for old in [t for t in self.gt if t < stamp]:  # ground truth of pairs never completed
             del self.gt[old]
         label = gt['gt/frame_name'].data if 'gt/frame_name' in gt else str(stamp)
         if 'gt/disparity' in gt and 'gt/valid' in gt:
-            rates = error_rates(result.disparity, image_to_array(gt['gt/disparity'], 'gt/disparity'),
+            rates = error_rates(result.disparity,
+                                image_to_array(gt['gt/disparity'], 'gt/disparity'),
                                 image_to_array(gt['gt/valid'], 'gt/valid') > 0)
             self.rates.append(rates)
             print_rates(label, rates)
@@ -288,19 +317,24 @@ def run(args):
     with open_bag(args.inp) as reader, output_bag(args.out, args.storage, args.force) as writer:
         names = check_topics(reader, args.inp, args.namespace)
         runner = Runner(pipeline, sync, writer, args.namespace, args.png)
-        replaced = {topic_name(args.namespace, name) for name in OUTPUTS}  # outputs of an earlier run
-        copies = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=TYPESTORE, msgdef=c.msgdef.data or None,
-                                              rihs01=c.digest or None, offered_qos_profiles=c.ext.offered_qos_profiles)
+        # outputs of an earlier run
+        replaced = {topic_name(args.namespace, name) for name in OUTPUTS}
+        copies = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=TYPESTORE,
+                                              msgdef=c.msgdef.data or None,
+                                              rihs01=c.digest or None,
+                                              offered_qos_profiles=c.ext.offered_qos_profiles)
                   for c in reader.connections if c.topic not in replaced}
         if 'gt/disparity' in names.values():
             tqdm.write(''.join(f'{k:>8}' for k in RATE_KEYS) + '  frame')
-        lefts = sum(c.msgcount for c in reader.connections if names.get(c.topic) == 'left/image_rect')
+        lefts = sum(c.msgcount for c in reader.connections
+                    if names.get(c.topic) == 'left/image_rect')
         with tqdm(total=lefts, unit='pair', leave=False) as bar:
             for conn, timestamp, raw in read_messages(reader, args.inp):
                 if conn.id in copies:
                     writer.write(copies[conn.id], timestamp, raw)
                 if conn.topic in names:
-                    runner.add(names[conn.topic], deserialize(raw, conn, timestamp, args.inp), timestamp)
+                    runner.add(names[conn.topic], deserialize(raw, conn, timestamp, args.inp),
+                               timestamp)
                     bar.update(sync.pairs - bar.n)
         if sync.pairs == 0:
             raise ValueError(f'{args.inp}: no left/right image pair with matching stamps')
@@ -313,9 +347,12 @@ def run(args):
 
 # ---- play -------------------------------------------------------------------------------
 def ros_qos(connection):
-    """rclpy QoS for replaying `connection`: history, depth, reliability and durability of its
-    first recorded profile (depth 10 if not recorded), else the sensor-data QoS for images and
-    the default QoS for the rest."""
+    """
+    Return the rclpy QoS for replaying `connection`.
+
+    History, depth, reliability and durability of its first recorded profile (depth 10 if not
+    recorded), else the sensor-data QoS for images and the default QoS for the rest.
+    """
     from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                            qos_profile_sensor_data)
 
@@ -325,13 +362,14 @@ def ros_qos(connection):
     if not connection.ext.offered_qos_profiles:
         return qos_profile_sensor_data if connection.msgtype == IMAGE else QoSProfile(depth=10)
     p = connection.ext.offered_qos_profiles[0]
-    return QoSProfile(history=HistoryPolicy.KEEP_ALL if p.history == QosHistory.KEEP_ALL else HistoryPolicy.KEEP_LAST,
+    return QoSProfile(history=(HistoryPolicy.KEEP_ALL if p.history == QosHistory.KEEP_ALL
+                               else HistoryPolicy.KEEP_LAST),
                       depth=p.depth or 10, reliability=policy(ReliabilityPolicy, p.reliability),
                       durability=policy(DurabilityPolicy, p.durability))
 
 
 def ros_message_class(msgtype):
-    """The rclpy class of 'pkg/msg/Name', or None if that package is not installed."""
+    """Return the rclpy class of 'pkg/msg/Name', or None if that package is not installed."""
     package, _, name = msgtype.rpartition('/')
     try:
         return getattr(importlib.import_module(package.replace('/', '.')), name)
@@ -340,19 +378,21 @@ def ros_message_class(msgtype):
 
 
 def wait_for_subscribers(publishers, seconds):
-    """Wait up to `seconds` until every publisher has a matched subscriber; warn about the rest.
+    """
+    Wait up to `seconds` until every publisher has a matched subscriber; warn about the rest.
 
     DDS matches the two ends separately, each on the other's discovery traffic: a subscriber
     matched here may not have matched this publisher yet, and drops what it sends until
     then. Hence MATCH_SETTLE_SECONDS more (measured with a node starting up: 1 s lost the
-    pair in 1 of 6 runs, 3 s in none of 8)."""
+    pair in 1 of 6 runs, 3 s in none of 8).
+    """
     deadline = time.monotonic() + seconds
     while any(p.get_subscription_count() == 0 for p in publishers) and time.monotonic() < deadline:
         time.sleep(0.01)
     missing = [p.topic_name for p in publishers if p.get_subscription_count() == 0]
     if missing and seconds > 0:
-        print(f'{PROG} play: no subscriber on {", ".join(missing)} after {seconds:g} s; playing anyway',
-              file=sys.stderr)
+        print(f'{PROG} play: no subscriber on {", ".join(missing)} after {seconds:g} s; '
+              'playing anyway', file=sys.stderr)
     elif publishers and seconds > 0:
         time.sleep(MATCH_SETTLE_SECONDS)
 
@@ -363,14 +403,16 @@ def play(args):
     from rclpy.signals import SignalHandlerOptions
 
     with open_bag(args.inp) as reader:
-        rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)  # Ctrl-C: KeyboardInterrupt
+        # Ctrl-C: KeyboardInterrupt
+        rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
         node = rclpy.create_node('gcp_stereo_bag_player')
         try:
             publishers = {}
             for c in reader.connections:
                 cls = ros_message_class(c.msgtype)
                 if cls is None:
-                    print(f'{PROG} play: skipping {c.topic}: no rclpy message class for {c.msgtype}', file=sys.stderr)
+                    print(f'{PROG} play: skipping {c.topic}: no rclpy message class for '
+                          f'{c.msgtype}', file=sys.stderr)
                 elif c.topic not in publishers:
                     publishers[c.topic] = node.create_publisher(cls, c.topic, ros_qos(c))
             if not publishers:
@@ -410,43 +452,57 @@ def _positive(text):
 
 
 def parser():
-    ap = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest='command', required=True)
-    storage = dict(choices=('sqlite3', 'mcap'), default='mcap', help='storage plugin of the output bag (default mcap)')
-    namespace = dict(default='', metavar='NS',
-                     help='topics under this namespace (default: none, e.g. /left/image_rect)')
-    force = dict(action='store_true', help='replace an existing --out')
+    storage = {'choices': ('sqlite3', 'mcap'), 'default': 'mcap',
+               'help': 'storage plugin of the output bag (default mcap)'}
+    namespace = {'default': '', 'metavar': 'NS',
+                 'help': 'topics under this namespace (default: none, e.g. /left/image_rect)'}
+    force = {'action': 'store_true', 'help': 'replace an existing --out'}
 
-    mk = sub.add_parser('make', help='dataset stereo pairs -> bag with the node input topics and ground truth')
+    mk = sub.add_parser('make', help='dataset stereo pairs -> bag with the node input topics '
+                                     'and ground truth')
     mk.add_argument('--dataset', required=True, metavar='PATH',
-                    help="dataset folder in any supported layout (searched recursively), or 'motorcycle'")
-    mk.add_argument('--frames', nargs='+', metavar='NAME', help='frame names (default: all of the dataset)')
+                    help='dataset folder in any supported layout (searched recursively), or '
+                         "'motorcycle'")
+    mk.add_argument('--frames', nargs='+', metavar='NAME',
+                    help='frame names (default: all of the dataset)')
     mk.add_argument('--storage', **storage)
-    mk.add_argument('--out', required=True, type=Path, metavar='BAG', help='bag to write (a directory)')
-    mk.add_argument('--rate', type=_positive, default=10.0, metavar='HZ', help='frames per second (default 10)')
+    mk.add_argument('--out', required=True, type=Path, metavar='BAG',
+                    help='bag to write (a directory)')
+    mk.add_argument('--rate', type=_positive, default=10.0, metavar='HZ',
+                    help='frames per second (default 10)')
     mk.add_argument('--namespace', **namespace)
     mk.add_argument('--force', **force)
 
-    rn = sub.add_parser('run', help='bag in -> bag out with disparity, gcp_mask, confidence, as the node')
+    rn = sub.add_parser('run', help='bag in -> bag out with disparity, gcp_mask, confidence, '
+                                    'as the node')
     rn.add_argument('--in', dest='inp', required=True, type=Path, metavar='BAG',
                     help='bag directory, or its .mcap / .db3 file')
-    rn.add_argument('--out', required=True, type=Path, metavar='BAG', help='bag to write: the input plus the outputs')
+    rn.add_argument('--out', required=True, type=Path, metavar='BAG',
+                    help='bag to write: the input plus the outputs')
     rn.add_argument('--params', type=Path, metavar='YAML',
-                    help='node parameters file, e.g. config/gcp_stereo.yaml (default: the node defaults)')
-    rn.add_argument('--png', type=Path, metavar='DIR', help='write colour-mapped disparity and GCP-mask PNGs here')
+                    help='node parameters file, e.g. config/gcp_stereo.yaml '
+                         '(default: the node defaults)')
+    rn.add_argument('--png', type=Path, metavar='DIR',
+                    help='write colour-mapped disparity and GCP-mask PNGs here')
     rn.add_argument('--storage', **storage)
     rn.add_argument('--namespace', **namespace)
     rn.add_argument('--force', **force)
 
-    pl = sub.add_parser('play', help='publish a bag into the live ROS graph at its recorded timing')
+    pl = sub.add_parser('play',
+                        help='publish a bag into the live ROS graph at its recorded timing')
     pl.add_argument('--in', dest='inp', required=True, type=Path, metavar='BAG',
                     help='bag directory, or its .mcap / .db3 file')
-    pl.add_argument('--rate', type=_positive, default=1.0, metavar='R', help='speed factor (default 1)')
+    pl.add_argument('--rate', type=_positive, default=1.0, metavar='R',
+                    help='speed factor (default 1)')
     pl.add_argument('--loop', action='store_true',
-                    help='play again and again, with the recorded stamps (as ros2 bag play --loop)')
+                    help='play again and again, with the recorded stamps '
+                         '(as ros2 bag play --loop)')
     pl.add_argument('--wait-subscribers', type=float, default=5.0, metavar='SECONDS',
-                    help='wait up to this long for a subscriber on every image topic (ground truth '
-                         'excepted) before publishing (default 5)')
+                    help='wait up to this long for a subscriber on every image topic '
+                         '(ground truth excepted) before publishing (default 5)')
     return ap
 
 

@@ -1,4 +1,5 @@
-"""gcp-stereo-bench: stage timings against OpenCV StereoSGBM (MODE_HH) in the same process.
+"""
+gcp-stereo-bench: stage timings against OpenCV StereoSGBM (MODE_HH) in the same process.
 
 A real pair is resized to KITTI size (1242x375) and matched with D = 128 disparities. Each
 stage runs once to warm up (Numba compilation, torch kernels), then `--repeat` times; the
@@ -7,17 +8,17 @@ read the ratios, not the absolute seconds.
 """
 import argparse
 import json
+from pathlib import Path
 import resource
 import statistics
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from ..stereo.cost import cost_volume
-from ..evaluation.datasets import list_frames, load_frame
 from .evaluate import opencv_sgbm
+from ..evaluation.datasets import list_frames, load_frame
+from ..stereo.cost import cost_volume
 from ..stereo.images import gray_pair
 from ..stereo.pipeline import StereoConfig, StereoPipeline
 from ..stereo.sgm import aggregate
@@ -43,20 +44,8 @@ def median_pipeline(pipeline, left, right, repeat):
     return total, {k: statistics.median(s[k] for s in timed) for k in timed[0]}
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument('--dataset', default='motorcycle', help="dataset of the pair (default: 'motorcycle')")
-    ap.add_argument('--frame', help='frame name in that dataset (default: the first)')
-    ap.add_argument('--max-disp', type=int, default=128)
-    ap.add_argument('--repeat', type=int, default=5)
-    ap.add_argument('--json', type=Path, help='write {"stages", "ratios", "peak_rss_mb"} here')
-    args = ap.parse_args(argv)
-
-    frame = load_frame(args.dataset, args.frame or list_frames(args.dataset)[0])
-    left, right = (cv2.resize(g, KITTI_SIZE, interpolation=cv2.INTER_AREA) for g in gray_pair(frame.left, frame.right))
-    nd = args.max_disp
-    print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, repeat {args.repeat}')
+def volume_stage_seconds(left, right, nd, repeat):
+    """Return the median seconds of OpenCV and of our cost and SGM stages on their own."""
     census = cost_volume(left, right, nd, 'census', dtype=np.uint16)  # as the pipeline runs Census
     census_f32 = census.astype(np.float32)
     stages = {
@@ -67,13 +56,34 @@ def main(argv=None):
         'sgm16': lambda: aggregate(census, 4, 128, 16),
         'sgm16_float32': lambda: aggregate(census_f32, 4, 128, 16),
     }
-    seconds = {name: median_seconds(fn, args.repeat) for name, fn in stages.items()}
-    del census, census_f32, stages  # the whole pipeline runs with only its own arrays
+    # The volumes are freed on return: the whole pipeline then runs with only its own arrays.
+    return {name: median_seconds(fn, repeat) for name, fn in stages.items()}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--dataset', default='motorcycle',
+                    help="dataset of the pair (default: 'motorcycle')")
+    ap.add_argument('--frame', help='frame name in that dataset (default: the first)')
+    ap.add_argument('--max-disp', type=int, default=128)
+    ap.add_argument('--repeat', type=int, default=5)
+    ap.add_argument('--json', type=Path, help='write {"stages", "ratios", "peak_rss_mb"} here')
+    args = ap.parse_args(argv)
+
+    frame = load_frame(args.dataset, args.frame or list_frames(args.dataset)[0])
+    left, right = (cv2.resize(g, KITTI_SIZE, interpolation=cv2.INTER_AREA)
+                   for g in gray_pair(frame.left, frame.right))
+    nd = args.max_disp
+    print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, '
+          f'repeat {args.repeat}')
+    seconds = volume_stage_seconds(left, right, nd, args.repeat)
     pipeline = StereoPipeline(StereoConfig.for_cost('census', max_disp=nd))
     breakdown = {}
     for suffix, bf16 in (('', False), ('_bf16', True)):
         pipe = pipeline.with_config(pipeline.config.replace(bf16=bf16))
-        seconds['pipeline' + suffix], breakdown['pipeline' + suffix] = median_pipeline(pipe, left, right, args.repeat)
+        seconds['pipeline' + suffix], breakdown['pipeline' + suffix] = median_pipeline(
+            pipe, left, right, args.repeat)
         for stage in ('cnn', 'confidence', 'refine'):
             seconds[stage + suffix] = breakdown['pipeline' + suffix][stage]
     peer = seconds['opencv_sgbm_hh']
@@ -87,7 +97,8 @@ def main(argv=None):
         print(f'{name} = Census+GCP+SGM (16 paths) end to end; median of its stages:',
               ', '.join(f'{k} {v:.3f} s' for k, v in stage_seconds.items()))
     if args.json:
-        args.json.write_text(json.dumps({'stages': seconds, 'ratios': ratios, 'peak_rss_mb': peak}, indent=1))
+        args.json.write_text(
+            json.dumps({'stages': seconds, 'ratios': ratios, 'peak_rss_mb': peak}, indent=1))
 
 
 if __name__ == '__main__':

@@ -1,4 +1,5 @@
-"""`make demo`: the whole ROS pipeline on the bundled default data.
+"""
+`make demo`: the whole ROS pipeline on the bundled default data.
 
 Builds a rosbag per frame (Middlebury 2014 Motorcycle from scikit-image, and KITTI 2012
 000070 when ../shared/data is beside the checkout), starts gcp_stereo_node in a private ROS
@@ -8,18 +9,18 @@ truth and stops everything.
 """
 import argparse
 import os
+from pathlib import Path
 import shutil
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from ..evaluation.datasets import load_frame
-from ..ros.graph import package_file, peer_graph
 from ..evaluation.metrics import error_rates
 from ..evaluation.viz import colorize, save_png
+from ..ros.graph import package_file, peer_graph
 from ..stereo.images import mask_image
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
@@ -50,7 +51,8 @@ def main(argv=None):
              '--storage', 'mcap', '--out', str(bags / f'frame{i}')])
 
     rows = []
-    with peer_graph('gcp_stereo_demo', params_file=package_file('config/gcp_stereo_tuned.yaml')) as (peer, node):
+    with peer_graph('gcp_stereo_demo',
+                    params_file=package_file('config/gcp_stereo_tuned.yaml')) as (peer, node):
         from sensor_msgs.msg import Image
         from stereo_msgs.msg import DisparityImage
 
@@ -60,7 +62,8 @@ def main(argv=None):
         peer.create_subscription(DisparityImage, 'disparity', got['disparity'].append, 10)
         peer.create_subscription(Image, 'gcp_mask', got['gcp_mask'].append, 10)
         for i, (dataset, name) in enumerate(frames):
-            run(['gcp_stereo_ros.tools.bag', 'play', '--in', str(bags / f'frame{i}'), '--wait-subscribers', '60'])
+            run(['gcp_stereo_ros.tools.bag', 'play', '--in', str(bags / f'frame{i}'),
+                 '--wait-subscribers', '60'])
             deadline = time.monotonic() + 120
             while min(len(v) for v in got.values()) <= i:
                 if time.monotonic() > deadline or node.poll() is not None:
@@ -72,12 +75,15 @@ def main(argv=None):
             disp[disp < disp_msg.min_disparity] = np.nan
             gcp = image_to_array(got['gcp_mask'][i]) > 0
             stem = name.replace('/', '_')
-            save_png(args.out / f'{stem}_disparity.png', colorize(disp, disp_msg.max_disparity + 1))
+            save_png(args.out / f'{stem}_disparity.png',
+                     colorize(disp, disp_msg.max_disparity + 1))
             save_png(args.out / f'{stem}_gcp_mask.png', mask_image(gcp))
             rows.append((name, error_rates(disp, frame.gt, frame.valid), 100 * gcp.mean()))
-    print(f'\n{"frame":<22}{"bad1":>7}{"bad2":>7}{"bad3":>7}{"bad5":>7}{"mae":>7}{"GCPs %":>8}')
+    print(f'\n{"frame":<22}{"bad1":>7}{"bad2":>7}{"bad3":>7}{"bad5":>7}{"mae":>7}'
+          f'{"GCPs %":>8}')
     for name, r, density in rows:
-        print(f'{name:<22}' + ''.join(f'{r[k]:7.2f}' for k in ('bad1', 'bad2', 'bad3', 'bad5', 'mae'))
+        print(f'{name:<22}'
+              + ''.join(f'{r[k]:7.2f}' for k in ('bad1', 'bad2', 'bad3', 'bad5', 'mae'))
               + f'{density:8.1f}')
     print('(% of ground-truth pixels with error > N px; mae in px)')
     print(f'PNGs in {args.out}/; node exited with {node.returncode}')

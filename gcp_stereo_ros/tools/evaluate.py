@@ -1,4 +1,5 @@
-"""gcp-stereo-eval: error rates of the stereo methods on datasets with ground truth.
+"""
+gcp-stereo-eval: error rates of the stereo methods on datasets with ground truth.
 
 Prints a table like the paper's Table 1 (% of ground-truth pixels with error > 3 px, per
 frame and mean) and optionally writes JSON rows and colour-mapped disparity PNGs.
@@ -6,28 +7,30 @@ frame and mean) and optionally writes JSON rows and colour-mapped disparity PNGs
 import argparse
 import fnmatch
 import json
-import time
 from pathlib import Path
+import time
 
 import cv2
 import numpy as np
-import yaml
 from tqdm import tqdm
+import yaml
 
 from ..evaluation.datasets import list_frames, load_frame
-from ..stereo.images import gray_pair
 from ..evaluation.metrics import error_rates
-from ..stereo.pipeline import StereoConfig, StereoPipeline
 from ..evaluation.viz import colorize, save_png
+from ..stereo.images import gray_pair
+from ..stereo.pipeline import StereoConfig, StereoPipeline
 
 METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
 
 
 def opencv_sgbm(left, right, max_disp, block=5):
-    """The peer: OpenCV StereoSGBM in MODE_HH (full 8-path SGM), disparity float32, NaN invalid.
+    """
+    Return the peer's disparity: OpenCV StereoSGBM in MODE_HH (full 8-path SGM).
 
-    Its own invalidating filters (uniqueness, left-right, speckle) are off, as ours are by
-    default; it still leaves no estimate where x < max_disp can not be searched.
+    The disparity is float32, NaN where invalid. Its own invalidating filters (uniqueness,
+    left-right, speckle) are off, as ours are by default; it still leaves no estimate where
+    x < max_disp can not be searched.
     """
     lg, rg = gray_pair(left, right)
     lo, hi = min(lg.min(), rg.min()), max(lg.max(), rg.max())
@@ -37,15 +40,19 @@ def opencv_sgbm(left, right, max_disp, block=5):
     ndisp = -(-int(max_disp) // 16) * 16
     sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=ndisp, blockSize=block,
                                  P1=8 * block * block, P2=32 * block * block, disp12MaxDiff=-1,
-                                 uniquenessRatio=0, speckleWindowSize=0, mode=cv2.STEREO_SGBM_MODE_HH)
+                                 uniquenessRatio=0, speckleWindowSize=0,
+                                 mode=cv2.STEREO_SGBM_MODE_HH)
     disp = sgbm.compute(lg, rg).astype(np.float32) / 16.0
     disp[disp < 0] = np.nan
     return disp
 
 
 def method_config(method, max_disp, paths=16, overrides=None):
-    """StereoConfig of a pipeline method ('sad', 'census+gcp', ...): the cost's defaults,
-    then `overrides` (a dict of StereoConfig fields)."""
+    """
+    Return the StereoConfig of a pipeline method ('sad', 'census+gcp', ...).
+
+    The cost's defaults, with `overrides` (a dict of StereoConfig fields) applied on top.
+    """
     cost, _, gcp = method.partition('+')
     return StereoConfig.for_cost(cost, use_gcp=bool(gcp), max_disp=max_disp, paths=paths,
                                  **(overrides or {}))
@@ -60,7 +67,8 @@ class Runner:
         self._pipeline = StereoPipeline(method_config('census', 16, paths, self.overrides))
 
     def pipeline(self, method, max_disp):
-        self._pipeline = self._pipeline.with_config(method_config(method, max_disp, self.paths, self.overrides))
+        self._pipeline = self._pipeline.with_config(
+            method_config(method, max_disp, self.paths, self.overrides))
         return self._pipeline
 
     def run(self, method, left, right, max_disp):
@@ -93,7 +101,7 @@ def select_frames(sources, patterns):
 
 
 def table(rows, methods, key='bad3'):
-    """The paper's Table 1 layout: one line per method, mean then per-frame values."""
+    """Return the paper's Table 1 layout: one line per method, mean then per-frame values."""
     frames = list(dict.fromkeys(r['frame'] for r in rows))
     width = max(len(m) for m in methods) + 2
     lines = [f'{"method":<{width}}{"mean":>8}  ' + '  '.join(frames),
@@ -101,7 +109,8 @@ def table(rows, methods, key='bad3'):
     for m in methods:
         vals = {r['frame']: r[key] for r in rows if r['method'] == m}
         mean = float(np.mean(list(vals.values())))
-        lines.append(f'{m:<{width}}{mean:8.2f}  ' + '  '.join(f'{vals[f]:>{len(f)}.2f}' for f in frames))
+        lines.append(f'{m:<{width}}{mean:8.2f}  '
+                     + '  '.join(f'{vals[f]:>{len(f)}.2f}' for f in frames))
     return '\n'.join(lines)
 
 
@@ -112,7 +121,8 @@ def parse_overrides(items):
     for item in items or []:
         key, sep, value = item.partition('=')
         if not sep or key not in fields:
-            raise SystemExit(f'--set expects KEY=VALUE with KEY among {sorted(fields)}, got {item!r}')
+            raise SystemExit(f'--set expects KEY=VALUE with KEY among {sorted(fields)}, '
+                             f'got {item!r}')
         out[key] = yaml.safe_load(value)
     return out
 
@@ -121,11 +131,13 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--dataset', action='append', required=True,
-                    help="dataset folder in any supported layout (searched recursively; for KITTI the "
-                         "folder holding training/), or 'motorcycle'; repeatable")
+                    help='dataset folder in any supported layout (searched recursively; for KITTI '
+                         "the folder holding training/), or 'motorcycle'; repeatable")
     ap.add_argument('--frames', nargs='+', help='frame names or shell patterns (default: all)')
-    ap.add_argument('--methods', nargs='+', default=['sad', 'census', 'opencv-sgbm'], choices=METHODS)
-    ap.add_argument('--max-disp', type=int, help="disparities searched (default: each frame's own)")
+    ap.add_argument('--methods', nargs='+', default=['sad', 'census', 'opencv-sgbm'],
+                    choices=METHODS)
+    ap.add_argument('--max-disp', type=int,
+                    help="disparities searched (default: each frame's own)")
     ap.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
     ap.add_argument('--set', action='append', metavar='KEY=VALUE',
                     help='override a pipeline parameter (e.g. theta=0.7, bf16=true); repeatable')
@@ -148,7 +160,8 @@ def main(argv=None):
                 rates = error_rates(disp, frame.gt, frame.valid)
                 rows.append({'method': method, 'frame': name, **rates, 'seconds': seconds})
                 if args.out:
-                    save_png(args.out / f'{name.replace("/", "_")}_{method}.png', colorize(disp, max_disp))
+                    save_png(args.out / f'{name.replace("/", "_")}_{method}.png',
+                             colorize(disp, max_disp))
                 bar.update()
     print(table(rows, args.methods))
     if args.json:

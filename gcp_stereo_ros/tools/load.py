@@ -1,4 +1,5 @@
-"""gcp-stereo-load: feed the node a camera-rate stream and report whether it keeps up.
+"""
+gcp-stereo-load: feed the node a camera-rate stream and report whether it keeps up.
 
 Starts `gcp_stereo_node` as its own process in a private ROS graph, publishes one real pair
 back to back (left, then right) at `--rate` Hz for `--seconds`, and reports pairs sent and
@@ -7,10 +8,10 @@ disparity (median, max), and the node's RSS over the run (it should stay flat).
 """
 import argparse
 import json
+from pathlib import Path
 import statistics
 import threading
 import time
-from pathlib import Path
 
 from ..evaluation.datasets import list_frames, load_frame
 from ..ros.graph import peer_graph
@@ -53,7 +54,8 @@ def _measure(args, frame, peer, node):
     from sensor_msgs.msg import Image
     from stereo_msgs.msg import DisparityImage
 
-    pubs = [peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data) for s in ('left', 'right')]
+    pubs = [peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data)
+            for s in ('left', 'right')]
     msgs = []
     for image in (frame.left, frame.right):
         fields = array_to_image_fields(image, 'rgb8' if image.ndim == 3 else 'mono8')

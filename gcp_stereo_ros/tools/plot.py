@@ -1,4 +1,5 @@
-"""gcp-stereo-plot: the paper's experiment figures as matplotlib PNGs.
+"""
+gcp-stereo-plot: the paper's experiment figures as matplotlib PNGs.
 
   sweep  error (> 3 px), GCP density and GCP accuracy of a method over a parameter grid, per frame
          (Figure 4: `--grid theta=0:1:0.05`); the best grid point is printed, which is how
@@ -14,13 +15,13 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from .evaluate import Runner, method_config, parse_overrides, select_frames
+from .evaluate import method_config, parse_overrides, Runner, select_frames
 from ..evaluation.datasets import load_frame
-from ..stereo.gcp import gcp_quality
 from ..evaluation.metrics import error_rates
+from ..stereo.gcp import gcp_quality
 
 matplotlib.use('Agg')
-import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
+import matplotlib.pyplot as plt  # noqa: E402, I100  (after choosing the headless backend)
 
 
 def parse_grid(items):
@@ -51,15 +52,18 @@ def sweep(args):
         for values in itertools.product(*grid.values()):
             point = dict(zip(grid, values))
             try:
-                config = method_config(args.method, max_disp, args.paths, {**runner.overrides, **point})
+                config = method_config(args.method, max_disp, args.paths,
+                                       {**runner.overrides, **point})
             except ValueError:  # e.g. P2 < P1: not a valid set-up, so not a candidate
                 continue
             pipe = base.with_config(config)
             result = pipe(frame.left, frame.right, confidence=conf)
-            row = {'frame': name, **point, 'bad3': error_rates(result.disparity, frame.gt, frame.valid)['bad3']}
+            row = {'frame': name, **point,
+                   'bad3': error_rates(result.disparity, frame.gt, frame.valid)['bad3']}
             if result.gcp is not None:
                 conf = (result.cof_c, result.cof_d, result.cof_dr)
-                row['gcp_density'], row['gcp_accuracy'] = gcp_quality(result.gcp, result.cof_d, frame.gt, frame.valid)
+                row['gcp_density'], row['gcp_accuracy'] = gcp_quality(
+                    result.gcp, result.cof_d, frame.gt, frame.valid)
             rows.append(row)
         print(f'{name}: best ' + _best(rows, name, grid))
     frames = list(dict.fromkeys(r['frame'] for r in rows))
@@ -67,7 +71,8 @@ def sweep(args):
     for r in rows:
         means.setdefault(tuple(r[k] for k in grid), []).append(r['bad3'])
     best = min(means, key=lambda k: np.mean(means[k]))
-    print(f'mean over {len(frames)} frame(s): best ' + ', '.join(f'{k}={v}' for k, v in zip(grid, best))
+    print(f'mean over {len(frames)} frame(s): best '
+          + ', '.join(f'{k}={v}' for k, v in zip(grid, best))
           + f' -> {np.mean(means[best]):.2f} % bad3')
     args.out.mkdir(parents=True, exist_ok=True)
     stem = 'sweep_' + args.method.replace('+', '_')
@@ -81,8 +86,11 @@ def _best(rows, frame, grid):
 
 
 def _plot_sweep(rows, grid, best, method, path):
-    """Error (and GCP density and accuracy) against the first grid parameter, the others
-    fixed at their best mean values."""
+    """
+    Plot error (and GCP density and accuracy) against the first grid parameter.
+
+    The other grid parameters are fixed at their best mean values.
+    """
     x_name = next(iter(grid))
     fixed = {k: v for k, v in best.items() if k != x_name}
     keys = ('bad3', 'gcp_density', 'gcp_accuracy') if 'gcp_density' in rows[0] else ('bad3',)
@@ -90,11 +98,13 @@ def _plot_sweep(rows, grid, best, method, path):
     axes = axes[0]
     for frame in dict.fromkeys(r['frame'] for r in rows):
         sel = [r for r in rows if r['frame'] == frame and all(r[k] == v for k, v in fixed.items())
-               and r.get('gcp_density', 1) > 0]  # no GCP at all (theta 1): every pixel C_hi, 100 % error
+               # no GCP at all (theta 1): every pixel C_hi, 100 % error
+               and r.get('gcp_density', 1) > 0]
         xs = [r[x_name] for r in sel]
         for ax, key in zip(axes, keys):
             ax.plot(xs, [r[key] for r in sel], marker='.', label=frame)
-    for ax, title in zip(axes, ('error > 3 px (%)', 'GCP density (% of GT pixels)', 'GCP accuracy (%)')):
+    for ax, title in zip(axes, ('error > 3 px (%)', 'GCP density (% of GT pixels)',
+                                'GCP accuracy (%)')):
         ax.set_xlabel(x_name)
         ax.set_title(f'{method}: {title}')
         ax.grid(alpha=0.3)
@@ -110,17 +120,20 @@ def bars(args):
     rows = json.loads(args.json.read_text())
     frames = list(dict.fromkeys(r['frame'] for r in rows))
     err = {(r['method'], r['frame']): r['bad3'] for r in rows}
-    pairs = [(c, f'{c}+gcp') for c in ('sad', 'census') if all((m, f) in err for m in (c, f'{c}+gcp') for f in frames)]
+    pairs = [(c, f'{c}+gcp') for c in ('sad', 'census')
+             if all((m, f) in err for m in (c, f'{c}+gcp') for f in frames)]
     if not pairs:
         raise SystemExit(f'{args.json} needs both a cost and its +gcp method on every frame')
-    fig, axes = plt.subplots(1, len(pairs), figsize=(max(6, 1.2 * len(frames)) * len(pairs), 4), squeeze=False)
+    fig, axes = plt.subplots(1, len(pairs), figsize=(max(6, 1.2 * len(frames)) * len(pairs), 4),
+                             squeeze=False)
     for ax, (base, gcp) in zip(axes[0], pairs):
         x = np.arange(len(frames))
         ax.bar(x - 0.2, [err[base, f] for f in frames], 0.4, label=f'{base.upper()}+SGM')
         ax.bar(x + 0.2, [err[gcp, f] for f in frames], 0.4, label=f'{base.upper()}+GCP+SGM')
         for i, f in enumerate(frames):
             cut = 100 * (1 - err[gcp, f] / err[base, f]) if err[base, f] else 0.0
-            ax.annotate(f'{-cut:+.0f}%', (i + 0.2, err[gcp, f]), ha='center', va='bottom', fontsize=8)
+            ax.annotate(f'{-cut:+.0f}%', (i + 0.2, err[gcp, f]), ha='center', va='bottom',
+                        fontsize=8)
         ax.set_xticks(x, ['/'.join(f.split('/')[-2:]) for f in frames], rotation=30, ha='right')
         ax.set_ylabel('error > 3 px (%)')
         ax.legend()
@@ -139,9 +152,11 @@ def main(argv=None):
     sp = sub.add_parser('sweep', help='error and GCP quality over a parameter grid')
     sp.add_argument('--dataset', action='append', required=True)
     sp.add_argument('--frames', nargs='+')
-    sp.add_argument('--method', choices=('census+gcp', 'sad+gcp', 'census', 'sad'), default='census+gcp')
+    sp.add_argument('--method', choices=('census+gcp', 'sad+gcp', 'census', 'sad'),
+                    default='census+gcp')
     sp.add_argument('--grid', action='append', required=True, metavar='NAME=LO:HI:STEP|V1,V2',
-                    help='StereoConfig field and its values, e.g. theta=0:1:0.05 or p2=64,128; repeatable')
+                    help='StereoConfig field and its values, e.g. theta=0:1:0.05 or p2=64,128; '
+                         'repeatable')
     sp.add_argument('--set', action='append', metavar='KEY=VALUE', help='fixed parameter override')
     sp.add_argument('--max-disp', type=int)
     sp.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))

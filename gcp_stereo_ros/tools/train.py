@@ -1,4 +1,5 @@
-"""Train the Siamese GCP CNN (`gcp_stereo_ros.stereo.cnn.GcpNet`) with the paper's hinge loss.
+"""
+Train the Siamese GCP CNN (`gcp_stereo_ros.stereo.cnn.GcpNet`) with the paper's hinge loss.
 
 For every left pixel (x, y) with known, non-occluded disparity d (rounded to an integer),
 one positive right patch at x - d + o_pos, o_pos uniform in {-1, 0, 1}, and one negative at
@@ -36,18 +37,18 @@ density/accuracy (`gcp.gcp_quality`) of `cnn.confidence` at `--val-thetas`, plus
 accuracy of plain winner-takes-all (WTA) on all valid pixels.
 """
 import argparse
+from dataclasses import dataclass
+from pathlib import Path
 import shlex
 import sys
 import time
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..stereo.cnn import PAD, GcpNet, confidence, network_input
 from ..evaluation.datasets import load_frames
+from ..stereo.cnn import confidence, GcpNet, network_input, PAD
 from ..stereo.gcp import gcp_quality, right_view_agrees
 from ..stereo.images import gray_pair
 
@@ -60,6 +61,7 @@ LR_CHECK_PX = 1.0
 @dataclass
 class View:
     """One training pair: padded standardized images (1, 1, H+8, W+8), integer GT (-1 = none)."""
+
     name: str
     left: torch.Tensor
     right: torch.Tensor
@@ -87,8 +89,8 @@ def views(frame):
     out = [_view(frame.name, frame.left, frame.right, frame.gt, frame.valid, frame.gt_right)]
     if frame.gt_right is not None:
         flip = np.fliplr
-        out.append(_view(frame.name + ' (mirrored)', flip(frame.right), flip(frame.left), flip(frame.gt_right),
-                         np.isfinite(frame.gt_right), flip(frame.gt)))
+        out.append(_view(frame.name + ' (mirrored)', flip(frame.right), flip(frame.left),
+                         flip(frame.gt_right), np.isfinite(frame.gt_right), flip(frame.gt)))
     return out
 
 
@@ -126,7 +128,8 @@ def train_step(net, optimizer, train_views, rng, batch_size, bf16=False):
             view = train_views[rng.integers(len(train_views))]
             height, width = view.disp.shape
             h, w = min(CROP[0], height), min(CROP[1], width)
-            s = pair_scores(net, view, rng, int(rng.integers(height - h + 1)), int(rng.integers(width - w + 1)), h, w)
+            s = pair_scores(net, view, rng, int(rng.integers(height - h + 1)),
+                            int(rng.integers(width - w + 1)), h, w)
             if s is not None:
                 scores.append(s)
     loss = hinge(torch.cat([s[0] for s in scores]), torch.cat([s[1] for s in scores]))
@@ -146,7 +149,8 @@ def validate(net, frames, thetas):
             loss = float(hinge(*pair_scores(net, views(f)[0], rng)))
             cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp)
             stats = {f'{t:g}': gcp_quality(cof_c > t, cof_d, f.gt, f.valid) for t in thetas}
-            out[f.name] = {'loss': loss, 'wta_accuracy': gcp_quality(cof_c >= 0, cof_d, f.gt, f.valid)[1],
+            out[f.name] = {'loss': loss,
+                           'wta_accuracy': gcp_quality(cof_c >= 0, cof_d, f.gt, f.valid)[1],
                            'gcp': stats}
     net.train()
     return out
@@ -180,10 +184,14 @@ def parse_args(argv):
     p = argparse.ArgumentParser(prog='gcp-stereo-train', description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--dataset', action='append', required=True,
-                   help='data folder (any supported layout, searched recursively) or "motorcycle"; repeatable')
-    p.add_argument('--frames', nargs='+', help='training frame names (default: every frame with GT)')
-    p.add_argument('--val-dataset', action='append', help='validation sources (default: the --dataset ones)')
-    p.add_argument('--val-frames', nargs='+', help='validation frame names (default: no validation)')
+                   help='data folder (any supported layout, searched recursively) or '
+                        '"motorcycle"; repeatable')
+    p.add_argument('--frames', nargs='+',
+                   help='training frame names (default: every frame with GT)')
+    p.add_argument('--val-dataset', action='append',
+                   help='validation sources (default: the --dataset ones)')
+    p.add_argument('--val-frames', nargs='+',
+                   help='validation frame names (default: no validation)')
     p.add_argument('--val-thetas', nargs='+', type=float, default=[0.5, 0.7, 0.8, 0.9])
     p.add_argument('--epochs', type=int, default=10)
     p.add_argument('--samples-per-epoch', type=int, default=2048, help='random crops per epoch')
@@ -191,10 +199,12 @@ def parse_args(argv):
     p.add_argument('--lr', type=float, default=0.01)
     p.add_argument('--momentum', type=float, default=0.9)
     p.add_argument('--seed', type=int, default=0)
-    p.add_argument('--bf16', action='store_true', help='bfloat16 autocast for the convolutions (about 2x faster '
-                   'on CPUs with AVX512-BF16); weights, loss and validation stay float32')
-    p.add_argument('--threads', type=int, help='torch CPU threads (default: torch\'s choice); 1 is much faster '
-                   'than 2 when other processes keep a core busy')
+    p.add_argument('--bf16', action='store_true',
+                   help='bfloat16 autocast for the convolutions (about 2x faster on CPUs with '
+                        'AVX512-BF16); weights, loss and validation stay float32')
+    p.add_argument('--threads', type=int,
+                   help="torch CPU threads (default: torch's choice); 1 is much faster than 2 "
+                        'when other processes keep a core busy')
     p.add_argument('--checkpoint-dir', type=Path, help='save a checkpoint after every epoch here')
     p.add_argument('--resume', type=Path, help='continue from this checkpoint')
     p.add_argument('--out', type=Path, default=Path('gcp_cnn.pt'), help='final weights file')
@@ -215,7 +225,8 @@ def main(argv=None):
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     train_frames = _select(args.dataset, args.frames, 'training')
-    val_frames = _select(args.val_dataset or args.dataset, args.val_frames, 'validation') if args.val_frames else []
+    val_frames = (_select(args.val_dataset or args.dataset, args.val_frames, 'validation')
+                  if args.val_frames else [])
     train_views = [v for f in train_frames for v in views(f)]
     net = GcpNet().to(memory_format=torch.channels_last)
     optimizer = torch.optim.SGD(net.parameters(), lr=args.lr, momentum=args.momentum)
@@ -243,19 +254,24 @@ def main(argv=None):
             bar.set_postfix(loss=f'{np.mean(losses[-50:]):.4f}')
         val = validate(net, val_frames, args.val_thetas)
         seconds += time.perf_counter() - t
-        history.append({'epoch': epoch, 'train_loss': float(np.mean(losses)), 'seconds': seconds, 'val': val})
+        history.append({'epoch': epoch, 'train_loss': float(np.mean(losses)), 'seconds': seconds,
+                        'val': val})
         _report(epoch, history[-1]['train_loss'], val)
         if args.checkpoint_dir:
             args.checkpoint_dir.mkdir(parents=True, exist_ok=True)
             torch.save({'net': net.state_dict(), 'optimizer': optimizer.state_dict(),
-                        'scheduler': scheduler.state_dict(), 'epoch': epoch, 'rng': rng.bit_generator.state,
-                        'torch_rng': torch.get_rng_state(), 'history': history, 'seconds': seconds},
+                        'scheduler': scheduler.state_dict(), 'epoch': epoch,
+                        'rng': rng.bit_generator.state, 'torch_rng': torch.get_rng_state(),
+                        'history': history, 'seconds': seconds},
                        args.checkpoint_dir / f'epoch_{epoch:03d}.pt')
-    meta = {'command': shlex.join(['gcp-stereo-train', *argv]), 'train_frames': [f.name for f in train_frames],
-            'val_frames': [f.name for f in val_frames], 'seed': args.seed, 'epochs': args.epochs, 'bf16': args.bf16,
-            'seconds': seconds, 'torch': str(torch.__version__), 'history': history}
+    meta = {'command': shlex.join(['gcp-stereo-train', *argv]),
+            'train_frames': [f.name for f in train_frames],
+            'val_frames': [f.name for f in val_frames], 'seed': args.seed, 'epochs': args.epochs,
+            'bf16': args.bf16, 'seconds': seconds, 'torch': str(torch.__version__),
+            'history': history}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({'state_dict': {k: v.contiguous() for k, v in net.state_dict().items()}, 'meta': meta}, args.out)
+    torch.save({'state_dict': {k: v.contiguous() for k, v in net.state_dict().items()},
+                'meta': meta}, args.out)
     tqdm.write(f'wrote {args.out} after {seconds:.0f} s of training')
 
 

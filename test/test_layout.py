@@ -1,0 +1,56 @@
+"""The package's import rule: the method is ROS-free, the ROS face never needs the tools."""
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / 'gcp_stereo_ros'
+ROS = {'rclpy', 'rosbags', 'rcl_interfaces', 'sensor_msgs', 'stereo_msgs', 'std_msgs',
+       'diagnostic_msgs', 'builtin_interfaces', 'geometry_msgs', 'launch', 'launch_ros',
+       'ament_index_python', 'message_filters', 'cv_bridge'}
+# subpackage: top-level modules and gcp_stereo_ros subpackages it must not import
+RULES = {
+    'stereo': ROS | {'gcp_stereo_ros.ros', 'gcp_stereo_ros.tools', 'gcp_stereo_ros.evaluation'},
+    'evaluation': ROS | {'gcp_stereo_ros.ros', 'gcp_stereo_ros.tools'},
+    'ros': {'gcp_stereo_ros.tools', 'gcp_stereo_ros.evaluation'},
+}
+
+
+def imported(source, module):
+    """Return the absolute names `source` (the text of dotted `module`) imports, lazy ones too."""
+    names = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ''
+            if node.level:
+                parent = module.split('.')[:-node.level]
+                base = '.'.join(parent + ([base] if base else []))
+            names.update(f'{base}.{alias.name}' for alias in node.names)
+            names.add(base)
+    return names
+
+
+def violations(names, forbidden):
+    return sorted(n for n in names
+                  if any(n == f or n.startswith(f + '.') for f in forbidden))
+
+
+def test_the_checker_sees_every_import_form():
+    source = ('import rclpy.node\nfrom ..tools import bag\n'
+              'def f():\n    from ..ros.node import main\n')
+    names = imported(source, 'gcp_stereo_ros.stereo.cost')
+    assert violations(names, RULES['stereo']) == [
+        'gcp_stereo_ros.ros.node', 'gcp_stereo_ros.ros.node.main',
+        'gcp_stereo_ros.tools', 'gcp_stereo_ros.tools.bag', 'rclpy.node']
+
+
+@pytest.mark.parametrize('sub', sorted(RULES))
+def test_import_rule(sub):
+    files = sorted((PACKAGE / sub).glob('*.py'))
+    assert len(files) >= 4, files
+    for path in files:
+        module = f'gcp_stereo_ros.{sub}.{path.stem}'
+        bad = violations(imported(path.read_text(), module), RULES[sub])
+        assert not bad, f'{path.relative_to(PACKAGE.parent)} imports {bad}'
