@@ -3,7 +3,8 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
 
-from .params import BY_NAME, config_from_params, cost_defaults, make_sync, PARAMS, SYNC_PARAMS
+from .params import (BY_NAME, config_from_params, config_warnings, cost_defaults, make_sync,
+                     PARAMS, SYNC_PARAMS)
 from ..stereo.cost import COSTS
 from ..stereo.pipeline import StereoPipeline
 
@@ -31,9 +32,11 @@ class LiveParameters:
     Declare the node's parameters and keep `values` and `pipeline` in step with them.
 
     A request is validated whole, by building the pipeline it asks for (a missing weights
-    file is refused here, with its path), and applied only if every value is valid.
+    file or an absent GPU is refused here, with its path or device), and applied only if
+    every value is valid; the start-up values are checked the same way and raise ValueError.
     Switching `cost` brings that cost's theta, P1, P2, c_hi and c_low unless set in the
-    same request. `on_sync_change(values)` is called when a sync parameter changes.
+    same request. `on_sync_change(values)` is called when a sync parameter changes. Valid
+    values that cannot work (theta 1 with GCPs) are logged as warnings.
     """
 
     def __init__(self, node, on_sync_change):
@@ -47,7 +50,8 @@ class LiveParameters:
             if p.name != 'cost':
                 node.declare_parameter(p.name, defaults.get(p.name, p.default), descriptor(p))
         self.values = {p.name: node.get_parameter(p.name).value for p in PARAMS}
-        self.pipeline = StereoPipeline(config_of(self.values))
+        self.pipeline = self._build(self.values, StereoPipeline())
+        self._warn()
         self._candidate = None
         node.add_pre_set_parameters_callback(self._complete_cost_switch)
         node.add_on_set_parameters_callback(self._validate)
@@ -68,11 +72,7 @@ class LiveParameters:
             return SetParametersResult(successful=True)
         values = {**self.values, **changes}
         try:
-            config = config_of(values)
-            make_sync(values)
-            pipeline = self.pipeline.with_config(config)
-            if config.use_gcp:
-                pipeline.net
+            pipeline = self._build(values, self.pipeline)
         except Exception as err:  # any invalid value is refused with its reason
             return SetParametersResult(successful=False, reason=str(err))
         self._candidate = (values, pipeline)
@@ -88,3 +88,18 @@ class LiveParameters:
             self._on_sync_change(values)
         self._node.get_logger().info('parameters: ' + ', '.join(
             f'{p.name}={p.value!r}' for p in params if p.name in BY_NAME))
+        self._warn()
+
+    @staticmethod
+    def _build(values, pipeline):
+        """Return `pipeline` with the config of `values`, its CNN loaded; raise if invalid."""
+        config = config_of(values)
+        make_sync(values)
+        pipeline = pipeline.with_config(config)
+        if config.use_gcp:
+            pipeline.net
+        return pipeline
+
+    def _warn(self):
+        for text in config_warnings(self.pipeline.config):
+            self._node.get_logger().warn(text)

@@ -17,6 +17,9 @@ def stamp_ns(header):
     return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
 
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 @dataclass(frozen=True)
 class Geometry:
     f: float = 0.0  # focal length in pixels (0 = unknown)
@@ -24,19 +27,44 @@ class Geometry:
     cx_offset: float = 0.0  # cx_left - cx_right, subtracted from disparities
 
 
-def geometry(left_info, right_info):
+def geometry(left_info, right_info, size, max_disp):
     """
-    Return the stereo geometry from the left and right sensor_msgs/CameraInfo.
+    Return the stereo geometry of a pair from its left and right sensor_msgs/CameraInfo.
 
-    Either CameraInfo may be None if absent. Computed as stereo_image_proc does:
-    f = right fx, t = -right Tx / fx.
+    Either CameraInfo may be None if absent; P all zero in both means uncalibrated. Both
+    give Geometry(). Computed as stereo_image_proc does: f = right fx, t = -right Tx / fx.
+    Raises ValueError, naming the field, for a CameraInfo that does not fit the images of
+    `size` (height, width) matched with `max_disp` disparities: NaN or inf in P, another
+    image size, fx <= 0, a baseline t <= 0, principal points at least `max_disp` px apart
+    (the published disparities would leave the message's range), or f, t beyond float32.
     """
     if left_info is None or right_info is None:
         return Geometry()
-    pl, pr = np.asarray(left_info.p, float), np.asarray(right_info.p, float)
-    if pr[0] <= 0:
+    p = {}
+    for side, info in (('left', left_info), ('right', right_info)):
+        p[side] = np.asarray(info.p, float)
+        if not np.isfinite(p[side]).all():
+            raise ValueError(f'{side} camera_info: P holds NaN or inf: {p[side].tolist()}')
+        if (info.height, info.width) != tuple(size):
+            raise ValueError(f'{side} camera_info is for {info.width}x{info.height} images, '
+                             f'the pair is {size[1]}x{size[0]}')
+    pl, pr = p['left'], p['right']
+    if not (pl.any() or pr.any()):
         return Geometry()
-    return Geometry(float(pr[0]), float(-pr[3] / pr[0]), float(pl[2] - pr[2]))
+    if not (pl[0] > 0 and pr[0] > 0):
+        raise ValueError(f'camera_info: fx = P[0] must be > 0, got left {pl[0]:g}, '
+                         f'right {pr[0]:g}')
+    f, t, cx_offset = pr[0], -pr[3] / pr[0], pl[2] - pr[2]
+    if not t > 0:
+        raise ValueError(f'right camera_info: baseline -P[3] / fx = {t:g} must be > 0 '
+                         '(the right camera has P[3] = -fx * baseline)')
+    if abs(cx_offset) >= max_disp:
+        raise ValueError(f'camera_info: the principal points differ by {cx_offset:g} px '
+                         f'(left cx - right cx), not within max_disparity {max_disp}')
+    if not max(f, t) <= FLOAT32_MAX:
+        raise ValueError(f'camera_info: f {f:g} or baseline {t:g} does not fit the float32 '
+                         'fields of stereo_msgs/DisparityImage')
+    return Geometry(float(f), float(t), float(cx_offset))
 
 
 def disparity_message(types, header, disp, config, geom, data=lambda a: a):

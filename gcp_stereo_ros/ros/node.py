@@ -13,10 +13,20 @@ Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
 The node is three parts: `LiveParameters` (declare, validate, apply), `StereoInput`
 (subscriptions and pairing) and a `NewestWorker` thread that processes the newest pair
 and publishes here, so parameter requests are served while a frame is being processed.
+
+Start-up settings that cannot work (invalid values, a missing weights file, `device: cuda`
+without a GPU, an unreadable params file) end the process with one line and exit code 2;
+unknown parameter names are reported as warnings. Ctrl-C or SIGTERM stops a frame in
+progress between two rows of a kernel or two CNN layers, so the process exits promptly.
 """
 import array
+import gc
+import math
+import os
+import signal
 import sys
 import time
+import traceback
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -26,13 +36,16 @@ from stereo_msgs.msg import DisparityImage
 
 from . import messages
 from .live_params import LiveParameters
-from .params import NODE_NAME
+from .params import BY_NAME, check_params_files, describe_unknown, NODE_NAME
 from .rosimage import image_to_array
 from .stereo_input import StereoInput
 from .worker import NewestWorker
+from ..stereo.cancel import CancelFlag, Cancelled
 from ..stereo.images import mask_image
+from ..stereo.pipeline import mmap_large_arrays
 
-ERROR_PERIOD = 5.0  # seconds between two logs of the same error
+LOG_PERIOD = 5.0  # seconds between two logs of the same text
+STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
 
 
 class _Types:
@@ -52,23 +65,28 @@ class GcpStereoNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
-        self.params = LiveParameters(self, on_sync_change=lambda v: self.input.reset_sync(v))
-        self.input = StereoInput(self, self.params.values, on_pair=self._on_pair)
+        self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
+        self.processed = 0
+        self.errors = 0
+        self._cancel = CancelFlag()
+        self.stopped = False  # set by destroy_node: the worker thread has ended
+        try:  # raises for start-up values that cannot work (weights, device, ranges)
+            self.params = LiveParameters(self, on_sync_change=lambda v: self.input.reset_sync(v))
+        except Exception:
+            super().destroy_node()
+            raise
+        self.input = StereoInput(self, self.params.values, on_pair=self._on_pair, log=self._log)
         self._pub_disp = self.create_publisher(DisparityImage, 'disparity', 5)
         self._pub_gcp = self.create_publisher(Image, 'gcp_mask', 5)
         self._pub_conf = self.create_publisher(Image, 'confidence', 5)
-        self._last_error = {}
-        self.processed = 0
-        self.errors = 0
         self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
-        self._worker = NewestWorker(self._process, name='gcp_stereo_worker')
-        pipeline = self.params.pipeline
-        if pipeline.config.use_gcp:
-            try:
-                pipeline.net
-            except Exception as err:  # keep serving: every pair will say why
-                self._error(f'CNN weights: {err}')
-        self.get_logger().info(f'ready: {pipeline.config}')
+        unknown = [n for n in self._parameter_overrides if not self.has_parameter(n)]
+        if unknown:
+            self.get_logger().warn(f'ignoring unknown parameter(s) '
+                                   f'{describe_unknown(unknown, BY_NAME)}')
+        self._worker = NewestWorker(self._process, 'gcp_stereo_worker',
+                                    on_error=self._on_worker_error, on_idle=self._on_idle)
+        self.get_logger().info(f'ready: {self.params.pipeline.config}')
 
     @property
     def stats(self):
@@ -79,13 +97,25 @@ class GcpStereoNode(Node):
     def _on_pair(self, stamp, left_msg, right_msg):
         self._worker.put((stamp, left_msg, right_msg))
 
-    def _error(self, text):
-        """Log an error at most once per ERROR_PERIOD for the same text."""
-        self.errors += 1
+    def _log(self, severity, text, detail=''):
+        """
+        Log `text` ('error' or 'warn') at most once per LOG_PERIOD, with `detail` appended.
+
+        Repeats of the same text in between are counted and the count is logged with the
+        next one; `detail` (a stamp, say) is not part of what repeats.
+        """
+        if severity == 'error':
+            self.errors += 1
         now = time.monotonic()
-        if now - self._last_error.get(text, -ERROR_PERIOD) >= ERROR_PERIOD:
-            self._last_error[text] = now
-            self.get_logger().error(text)
+        last = self._last_log.setdefault(text, [-math.inf, 0])
+        if now - last[0] < LOG_PERIOD:
+            last[1] += 1
+            return
+        notes = [detail] if detail else []
+        if last[1]:
+            notes.append(f'{last[1]} more like it in the last {now - last[0]:.0f} s')
+        getattr(self.get_logger(), severity)(text + (f' ({"; ".join(notes)})' if notes else ''))
+        self._last_log[text] = [now, 0]
 
     def _process(self, stamp, left_msg, right_msg):
         pipeline = self.params.pipeline
@@ -93,22 +123,33 @@ class GcpStereoNode(Node):
         try:
             left = image_to_array(left_msg, topics['left'])
             right = image_to_array(right_msg, topics['right'])
-            result = pipeline(left, right)
-        except Exception as err:  # bad input or weights: say why, keep serving
-            self._error(f'skipping pair {topics["left"]} + {topics["right"]} '
-                        f'at stamp {stamp} ns: {err}')
+            geom = messages.geometry(self.input.info['left'], self.input.info['right'],
+                                     left.shape[:2], pipeline.config.max_disp)
+            result = pipeline(left, right, cancel=self._cancel)
+        except Cancelled:
+            return  # shutting down
+        except Exception as err:  # bad input, camera_info, weights or memory: say why
+            self._log('error', f'skipping pair {topics["left"]} + {topics["right"]}: {err}',
+                      f'stamp {stamp} ns')
             return
         try:
-            self._publish(left_msg.header, result, pipeline.config)
-        except Exception:
+            self._publish(left_msg.header, result, pipeline.config, geom)
+        except Exception as err:
             if self.context.ok():
-                raise
-            return  # shutting down (Ctrl-C) while this pair was in flight: nothing to send to
+                self._log('error', f'cannot publish the outputs: {err}', f'stamp {stamp} ns')
+            return  # else shutting down while this pair was in flight: nothing to send to
         self.processed += 1
         self._log_progress(result.seconds)
 
-    def _publish(self, header, result, config):
-        geom = messages.geometry(self.input.info['left'], self.input.info['right'])
+    def _on_worker_error(self, err):
+        where = traceback.extract_tb(err.__traceback__)[-1]
+        self._log('error', f'unexpected {type(err).__name__} in the worker thread, which goes '
+                           f'on: {err} (at {where.filename}:{where.lineno})')
+
+    def _on_idle(self):
+        self.params.pipeline.release()
+
+    def _publish(self, header, result, config, geom):
         self._pub_disp.publish(messages.disparity_message(
             _Types, header, result.disparity, config, geom, _ros_data))
         if result.gcp is not None:
@@ -137,16 +178,24 @@ class GcpStereoNode(Node):
                             'seconds': {}}
 
     def destroy_node(self):
-        self._worker.stop()
+        self._cancel.set()
+        self.stopped = self._worker.stop(STOP_SECONDS)
+        if not self.stopped:
+            self.get_logger().warn(f'the frame in progress did not stop within {STOP_SECONDS} s; '
+                                   'exiting anyway')
         return super().destroy_node()
 
 
 def main(args=None):
-    rclpy.init(args=args)
+    argv = sys.argv if args is None else args
     try:
+        check_params_files(argv)  # rcl would say it with a traceback
+        mmap_large_arrays()
+        rclpy.init(args=argv)
         node = GcpStereoNode()
-    except Exception as err:  # invalid start-up parameters: one line, no traceback
-        print(f'{NODE_NAME}: cannot start: {err}', file=sys.stderr)
+    except Exception as err:  # settings that cannot work: one line, no traceback
+        print(f'{NODE_NAME}: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
+              file=sys.stderr)
         rclpy.try_shutdown()
         return 2
     try:
@@ -154,6 +203,13 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):  # a second Ctrl-C must not abort the exit
+            signal.signal(sig, signal.SIG_IGN)
         node.destroy_node()
         rclpy.try_shutdown()
+    if not node.stopped:  # the interpreter's exit would abort on the thread still running
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
+    gc.freeze()  # else the interpreter's exit spends about 0.7 s of CPU collecting objects
     return 0

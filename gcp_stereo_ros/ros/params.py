@@ -5,12 +5,13 @@ The node declares them; `gcp-stereo-bag run --params` reads the same YAML file, 
 processed exactly as the live node would.
 """
 from dataclasses import dataclass
+import difflib
 from pathlib import Path
 
 import yaml
 
 from .sync import PairSync
-from ..stereo.pipeline import COST_DEFAULTS, StereoConfig
+from ..stereo.pipeline import COST_DEFAULTS, MIB, StereoConfig
 
 NODE_NAME = 'gcp_stereo_node'
 
@@ -57,6 +58,10 @@ PARAMS = (
     Param('lr_check', _D.lr_check,
           'left-right consistency check (invalid pixels published as -1)', 'lr_check'),
     Param('median', _D.median, '3x3 median filter on the disparity', 'median'),
+    Param('memory_limit_mb', _D.memory_limit_mb,
+          'memory budget in MiB of one pair: a pair that would need more is refused, saying '
+          'what to lower; each sync queue holds at most a quarter of it',
+          'memory_limit_mb', (64, 1 << 20, 1)),
     Param('approximate_sync', False,
           'pair left/right images whose stamps differ by at most the tolerance'),
     Param('approximate_sync_tolerance_seconds', 0.0,
@@ -68,7 +73,9 @@ PARAMS = (
 )
 BY_NAME = {p.name: p for p in PARAMS}
 COST_PARAMS = {'theta': 'theta', 'P1': 'p1', 'P2': 'p2', 'c_hi': 'c_hi', 'c_low': 'c_low'}
-SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds')
+SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds',
+               'memory_limit_mb')
+QUEUE_SHARE = 4  # each sync queue holds at most memory_limit_mb / QUEUE_SHARE
 
 
 def cost_defaults(cost):
@@ -87,14 +94,52 @@ def config_from_params(values):
     """
     unknown = set(values) - set(BY_NAME)
     if unknown:
-        raise ValueError(f'unknown parameter(s) {sorted(unknown)}; known: {sorted(BY_NAME)}')
+        raise ValueError(f'unknown parameter(s) {describe_unknown(unknown, BY_NAME)}; '
+                         f'known: {", ".join(sorted(BY_NAME))}')
     fields = {BY_NAME[n].field: v for n, v in values.items() if BY_NAME[n].field and n != 'cost'}
     return StereoConfig.for_cost(values.get('cost', _D.cost), **fields)
 
 
+def describe_unknown(names, known):
+    """Return unknown parameter names as text, each with the closest known name if any."""
+    parts = []
+    for name in sorted(names):
+        close = difflib.get_close_matches(name, known, n=1)
+        parts.append(repr(name) + (f' (did you mean {close[0]!r}?)' if close else ''))
+    return ', '.join(parts)
+
+
+def config_warnings(config):
+    """Return what is wrong with a valid StereoConfig as used on a stream, as sentences."""
+    if config.use_gcp and config.theta >= 1:
+        return [f'theta {config.theta:g} selects no GCP (the CNN confidence is at most 1): '
+                'every pixel gets c_hi at every disparity and the disparity is 0 everywhere; '
+                'lower theta or set use_gcp false']
+    return []
+
+
 def make_sync(values):
     """Build the PairSync that ROS-named parameter values ask for (defaults for missing ones)."""
-    return PairSync(*(values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS))
+    queue_size, approximate, tolerance, memory_limit_mb = (
+        values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS)
+    return PairSync(queue_size, approximate, tolerance,
+                    memory_limit_mb * MIB // QUEUE_SHARE)
+
+
+def read_yaml(path):
+    """Return the parsed YAML file at `path`; ValueError in one line if it cannot be read."""
+    try:
+        return yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ValueError(f'cannot read parameters file {path}: '
+                         + ' '.join(str(err).split())) from err
+
+
+def check_params_files(argv):
+    """Raise ValueError if a `--params-file` among command-line arguments cannot be read."""
+    for flag, path in zip(argv, argv[1:]):
+        if flag == '--params-file':
+            read_yaml(path)
 
 
 def load_params_file(path):
@@ -104,14 +149,12 @@ def load_params_file(path):
     The file has the form `<node or /**>: ros__parameters: {...}`; `qos_overrides`, which
     only rclpy reads, is left out.
     """
-    path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        raise ValueError(f'cannot read parameters file {path}: {err}') from err
+    doc = read_yaml(path)
     for key in (NODE_NAME, '/' + NODE_NAME, '/**'):
         if (isinstance(doc, dict) and isinstance(doc.get(key), dict)
                 and 'ros__parameters' in doc[key]):
+            if not isinstance(doc[key]['ros__parameters'], dict):
+                raise ValueError(f'{path}: {key}: ros__parameters must map names to values')
             values = dict(doc[key]['ros__parameters'])
             values.pop('qos_overrides', None)  # rclpy's QoS settings, not pipeline parameters
             return values

@@ -7,11 +7,17 @@ class NewestWorker:
     Run `process(*item)` in a thread for the newest item `put` since it last looked.
 
     An item still waiting when a newer one arrives is dropped and counted in `stale`, so
-    the caller never falls behind and memory holds at most one waiting item.
+    the caller never falls behind and memory holds at most one waiting item. The thread
+    outlives any exception of `process`: it goes to `on_error(err)` and the next item is
+    taken. `on_idle()` runs in the thread once no item has come for `idle_seconds` since the
+    last one (the node lets go of its arrays then).
     """
 
-    def __init__(self, process, name):
+    def __init__(self, process, name, on_error, on_idle=None, idle_seconds=2.0):
         self._process = process
+        self._on_error = on_error
+        self._on_idle = on_idle
+        self._idle_seconds = idle_seconds
         self.stale = 0
         self._pending = None
         self._stopping = False
@@ -27,19 +33,36 @@ class NewestWorker:
             self._pending = item
             self._cv.notify()
 
-    def stop(self):
-        """Stop after the item in progress, if any; waiting items are dropped."""
+    def stop(self, timeout=None):
+        """
+        Drop waiting items and wait up to `timeout` s for the item in progress, if any.
+
+        Return True if the thread has ended.
+        """
         with self._cv:
             self._stopping = True
             self._cv.notify()
-        self._thread.join()
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
 
     def _run(self):
+        idle_due = False  # an item was processed and on_idle has not run since
         while True:
             with self._cv:
-                while self._pending is None and not self._stopping:
-                    self._cv.wait()
+                ready = self._cv.wait_for(lambda: self._pending is not None or self._stopping,
+                                          self._idle_seconds if idle_due else None)
                 if self._stopping:
                     return
                 item, self._pending = self._pending, None
-            self._process(*item)
+            if ready:
+                self._call(self._process, *item)
+                idle_due = self._on_idle is not None
+            else:
+                idle_due = False
+                self._call(self._on_idle)
+
+    def _call(self, fn, *args):
+        try:
+            fn(*args)
+        except Exception as err:  # whatever failed, the thread goes on: say why
+            self._on_error(err)

@@ -72,7 +72,8 @@ def load_net(path=None, device='cpu'):
     Return a GcpNet in eval mode with the weights at `path` (default: the shipped weights).
 
     The file holds {'state_dict': ..., 'meta': {...}} (see `gcp_stereo_ros.tools.train`).
-    Raises FileNotFoundError if it does not exist, ValueError if it cannot be read as such.
+    Raises FileNotFoundError if it does not exist, ValueError if it cannot be read as such
+    or holds NaN or infinite weights.
     """
     path = Path(DEFAULT_WEIGHTS if path is None else path)
     if not path.is_file():
@@ -84,8 +85,20 @@ def load_net(path=None, device='cpu'):
     except Exception as e:  # any unreadable or mismatching file is reported the same way
         raise ValueError(f'GCP CNN weights file {path} is corrupt or not a GcpNet checkpoint: '
                          f'{e}') from e
+    if not all(torch.isfinite(t).all() for t in net.state_dict().values()):
+        raise ValueError(f'GCP CNN weights file {path} holds NaN or infinite weights '
+                         '(a diverged training run?)')
     net.meta = blob.get('meta', {})
     return net.to(device).eval()
+
+
+def check_device(device):
+    """Raise ValueError unless the torch device 'cuda' or 'cuda:N' exists here."""
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    index = int(device.partition(':')[2] or 0)
+    if index >= count:
+        have = 'no CUDA GPU' if count == 0 else f'{count} CUDA GPU(s)'
+        raise ValueError(f'device {device!r}: this machine has {have}; use cpu')
 
 
 @njit(inline='always', fastmath=True)
@@ -120,7 +133,7 @@ def _unit_rows(bits, shift, y):
     return out
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
 def _best_match(bits, shift, max_disp, cof_c, cof_d, cof_dr):
     """
     Stream max / first argmax over d of Vol(y, x, d) = <f_L[y, x], f_R[y, x - d]>.
@@ -179,7 +192,8 @@ def network_input(*grays):
     return F.pad(x, (PAD,) * 4, mode='replicate')
 
 
-def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=False, seconds=None):
+def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=False, seconds=None,
+               cancel=None):
     """
     Return the CNN matching confidence of a rectified pair for disparities 0..max_disp-1.
 
@@ -189,7 +203,8 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     on bfloat16 autocast (about 2x faster on CPUs with AVX512-BF16). The L2 normalization
     (float32) and the correlation always run in a numba kernel on the CPU, strip by strip,
     streaming over d without materializing the volume. `seconds`: a dict that gains the wall
-    time of the convolutions ('cnn') and of the correlation ('confidence').
+    time of the convolutions ('cnn') and of the correlation ('confidence'). `cancel`: a
+    CancelFlag, checked before each layer of each strip (raises Cancelled).
 
     Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1], int32 (H, W)
     argmax_d Vol, where Vol(y, x, d) = 0 for x - d < 0, and int32 (H, W) cof_dr, for each
@@ -216,7 +231,12 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
         t = time.perf_counter()
         with torch.inference_mode(), torch.autocast(torch.device(device).type, torch.bfloat16,
                                                     enabled=bf16):
-            f = net.branch(x[:, :, y0:y1 + 2 * PAD])  # channels_last: the permute below is free
+            f = x[:, :, y0:y1 + 2 * PAD]
+            for layer in net.branch:  # = net.branch(f), stoppable between layers
+                if cancel is not None:
+                    cancel.check()
+                f = layer(f)
+        # channels_last: the permute is free
         f = f.permute(0, 2, 3, 1).cpu().contiguous()  # (2, rows, W, 64)
         if f.dtype == torch.bfloat16:  # the numba kernels widen and normalize it
             bits, shift = f.view(torch.int16).numpy().view(np.uint16), 16

@@ -3,9 +3,11 @@ The one stereo pipeline every caller uses: evaluation, the ROS node and the bag 
 
 cost volume -> (CNN confidence -> GCPs -> refinement) -> SGM -> winner-takes-all.
 """
+import ctypes
 import dataclasses
 from dataclasses import dataclass
 import math
+import re
 import time
 
 import numpy as np
@@ -13,7 +15,10 @@ import numpy as np
 from . import cost as cost_mod
 from .gcp import refine, select
 from .images import gray_pair
-from .sgm import aggregate, disparity, path_sum_bound, PATHS
+from .sgm import aggregate, directions, disparity, path_sum_bound, PATHS
+
+MIB = 1 << 20
+DEVICE = re.compile(r'cpu|cuda(:[0-9]+)?')
 
 # The paper's parameters for each matching cost (Zhong et al., section 4).
 COST_DEFAULTS = {
@@ -42,6 +47,9 @@ class StereoConfig:
     subpixel: bool = False
     lr_check: bool = False
     median: bool = False
+    # Pairs whose pipeline would need more memory are refused (see `memory_bytes`). 3 GiB:
+    # with the process's own 0.6 GB the node stays under half of an 8 GB vehicle computer.
+    memory_limit_mb: int = 3072
 
     @classmethod
     def for_cost(cls, cost, **overrides):
@@ -73,8 +81,16 @@ class StereoConfig:
                              f'got {self.theta}')
         if self.c_low > self.c_hi:
             raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
-        if not (self.device == 'cpu' or self.device.startswith('cuda')):
+        if not (isinstance(self.device, str) and DEVICE.fullmatch(self.device)):
             raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
+        if self.device != 'cpu':
+            from .cnn import check_device  # torch is imported only for a GPU
+            check_device(self.device)
+        if not (isinstance(self.memory_limit_mb, (int, np.integer))
+                and not isinstance(self.memory_limit_mb, bool)
+                and 64 <= self.memory_limit_mb <= 1 << 20):
+            raise ValueError('memory_limit_mb must be an integer in [64, 1048576], '
+                             f'got {self.memory_limit_mb!r}')
         return self
 
 
@@ -109,13 +125,89 @@ def fixed_point_scale(cfg):
     return None
 
 
+def volume_dtype(cfg):
+    """Return the type of the cost and path-sum volumes: uint16 with a fixed-point scale."""
+    return np.dtype(np.float32 if fixed_point_scale(cfg) is None else np.uint16)
+
+
+# Bytes per pixel besides the volumes, alive at once while the cost volume is built (the
+# gray pair 8, the CNN outputs 12, the Census bit strings 48), rounded up; it covers the
+# later stages too.
+PIXEL_BYTES = 80
+# While the CNN runs: the gray pair, its network input and the CNN outputs (8 + 8 + 12 bytes
+# per pixel), and of one strip at most three layer outputs (a convolution's, its ReLU's, the
+# descriptors copied out).
+CNN_PIXEL_BYTES = 28
+STRIP_LAYERS = 3
+
+
+def memory_bytes(cfg, height, width):
+    """
+    Return an upper bound of the memory the pipeline allocates for a pair of this size.
+
+    The cost and path-sum volumes (H x W x D each, kept between frames) and the SGM sweep
+    buffers (3 rows of each path from above, W x D each), plus whichever needs more: the
+    CNN's arrays with one strip's activations (two images, 64 float32 maps of
+    STRIP_ROWS + 8 rows), or PIXEL_BYTES per pixel for the later stages. Measured peaks stay
+    below it (README, Implementation notes).
+    """
+    fixed, per_disparity = _memory_terms(cfg, height, width)
+    return fixed + per_disparity * cfg.max_disp
+
+
+def _memory_terms(cfg, height, width):
+    """Return (bytes, bytes per disparity) of `memory_bytes`."""
+    itemsize = volume_dtype(cfg).itemsize
+    sweep_rows = 3 * sum(dy > 0 for _, dy in directions(cfg.paths))
+    per_disparity = (2 * height + sweep_rows) * width * itemsize
+    fixed = PIXEL_BYTES * height * width
+    if cfg.use_gcp:
+        from .cnn import FEATURES, PAD, STRIP_ROWS
+        strip = 2 * FEATURES * (min(STRIP_ROWS, height) + 2 * PAD) * (width + 2 * PAD) * 4
+        fixed = max(fixed, CNN_PIXEL_BYTES * height * width + STRIP_LAYERS * strip)
+    return fixed, per_disparity
+
+
+def mmap_large_arrays():
+    """
+    Make glibc's malloc serve blocks of 1 MiB or more with mmap, in this whole process.
+
+    For long-running processes (the node, the bag tool). By default glibc raises that
+    threshold up to 32 MiB after a large block is freed, and serves blocks below it from
+    heaps that keep freed memory: measured at 741x500, 100 MB more after the arrays were let
+    go and steady peaks 30 % higher. With it, RSS follows the arrays alive. No-op without
+    glibc.
+    """
+    try:
+        ctypes.CDLL(None).mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):
+        pass
+
+
+def check_memory(cfg, height, width):
+    """Raise ValueError if a pair of this size needs more than cfg.memory_limit_mb."""
+    need = memory_bytes(cfg, height, width)
+    if need <= cfg.memory_limit_mb * MIB:
+        return
+    fixed, per_disparity = _memory_terms(cfg, height, width)
+    fits = (cfg.memory_limit_mb * MIB - fixed) // per_disparity
+    lower = (f'lower max_disparity (at most {fits} fits), ' if fits >= 1 else '')
+    raise ValueError(
+        f'{width}x{height} at max_disparity {cfg.max_disp} needs about {need / MIB:.0f} MB '
+        f'(two {width}x{height}x{cfg.max_disp} {volume_dtype(cfg)} volumes), over '
+        f'memory_limit_mb {cfg.memory_limit_mb}: {lower}raise downsample, or raise '
+        'memory_limit_mb')
+
+
 class StereoPipeline:
     """
     Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
 
     The cost volume and the summed path costs are written into two arrays kept from the
     previous call of the same size and type (two fresh (H, W, D) arrays per frame would cost
-    a page fault per 4 KiB). So one pipeline serves one thread at a time.
+    a page fault per 4 KiB); kept arrays that do not fit a pair are let go before new ones
+    are allocated, and `release` lets them all go. So one pipeline serves one thread at a
+    time.
     """
 
     def __init__(self, config=None, net=None, _workspace=None):
@@ -137,10 +229,18 @@ class StereoPipeline:
         """
         Return the kept array `name` if it has `shape` and `dtype`, else None.
 
-        With None the callee allocates; that array is kept then.
+        With None the callee allocates; a kept array of another shape or type is let go here,
+        and the new one is kept then.
         """
         a = self._workspace.get(name)
-        return a if a is not None and a.shape == shape and a.dtype == dtype else None
+        if a is not None and a.shape == shape and a.dtype == dtype:
+            return a
+        self._workspace.pop(name, None)
+        return None
+
+    def release(self):
+        """Let go of the kept arrays (of every pipeline sharing them), e.g. when idle."""
+        self._workspace.clear()
 
     @property
     def net(self):
@@ -149,12 +249,15 @@ class StereoPipeline:
             self._net = load_net(self.config.weights or None, self.config.device)
         return self._net
 
-    def __call__(self, left, right, confidence=None):
+    def __call__(self, left, right, confidence=None, cancel=None):
         """
         Return the StereoResult of a pair.
 
         `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair and max_disp,
-        to sweep GCP/SGM parameters without running the CNN again.
+        to sweep GCP/SGM parameters without running the CNN again. `cancel`: a CancelFlag
+        that another thread may set to stop the run (raises Cancelled within a row of a
+        kernel or a CNN layer). Raises ValueError for bad input or a pair that needs more
+        than memory_limit_mb.
         """
         cfg = self.config
         net = self.net if cfg.use_gcp and confidence is None else None
@@ -166,34 +269,39 @@ class StereoPipeline:
             now = time.perf_counter()
             seconds[stage] = now - t
             t = now
+            if cancel is not None:
+                cancel.check()
 
         left, right = gray_pair(left, right)
+        check_memory(cfg, *left.shape)
+        shape = left.shape + (cfg.max_disp,)
+        dtype = volume_dtype(cfg)
+        # Kept arrays of another shape or type are let go now, before anything is allocated.
+        kept = {name: self._array(name, shape, dtype) for name in ('cost', 'total')}
         gcp = cof_c = cof_d = cof_dr = None
         if net is not None:
             from .cnn import confidence as cnn_confidence
             confidence = cnn_confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16,
-                                        seconds=seconds)
+                                        seconds=seconds, cancel=cancel)
             t = time.perf_counter()
         if cfg.use_gcp:
             if len(confidence) != 3:
                 raise ValueError('confidence must be (cof_c, cof_d, cof_dr), '
                                  'as StereoResult holds them')
             cof_c, cof_d, cof_dr = confidence
-        shape = left.shape + (cfg.max_disp,)
         scale = fixed_point_scale(cfg)
-        dtype = np.dtype(np.float32 if scale is None else np.uint16)
         fixed = (lambda v: v) if scale is None else (lambda v: round(v * scale))
         volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window,
-                                      self._array('cost', shape, dtype), scale or 1, dtype)
+                                      kept['cost'], scale or 1, dtype, cancel)
         lap('cost')
         if cfg.use_gcp:
             gcp = select(cof_c, cof_d, cof_dr, cfg.theta, cfg.gcp_lr_check)
             refine(volume, gcp, cof_d, fixed(cfg.c_hi), fixed(cfg.c_low))
             lap('refine')
-        total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths,
-                          self._array('total', shape, dtype))
+        total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, kept['total'],
+                          cancel)
         self._workspace.update(cost=volume, total=total)
         lap('sgm')
-        disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)
+        disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median, cancel)
         lap('wta')
         return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds)

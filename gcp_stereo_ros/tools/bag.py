@@ -25,7 +25,9 @@ output bag holds every input message (earlier outputs excepted) plus, under the 
 namespace and built as the node builds them, `disparity` (stereo_msgs/DisparityImage),
 `gcp_mask` (mono8, 255 = GCP) and `confidence` (32FC1; the node sends it only while
 subscribed), stamped with the left header and written at the bag timestamp of the image that
-completed the pair. Bags are written to a hidden sibling and renamed into place on success.
+completed the pair. A pair the node would skip (bad image, camera_info or size) is skipped
+with a line on stderr. Bags are written to a hidden sibling and renamed into place on
+success; Ctrl-C or SIGTERM removes it, and one left by a killed run is removed by the next.
 """
 import argparse
 from contextlib import contextmanager
@@ -33,6 +35,7 @@ import importlib
 import os
 from pathlib import Path
 import shutil
+import signal
 import sys
 import time
 from types import SimpleNamespace
@@ -49,11 +52,12 @@ from ..evaluation.datasets import list_frames, load_frames
 from ..evaluation.metrics import error_rates, THRESHOLDS
 from ..evaluation.viz import colorize, save_png
 from ..ros import messages
-from ..ros.params import config_from_params, load_params_file, make_sync
+from ..ros.graph import shm_segment_bytes
+from ..ros.params import config_from_params, config_warnings, load_params_file, make_sync
 from ..ros.rosimage import image_to_array
 from ..ros.sync import SIDES
 from ..stereo.images import mask_image
-from ..stereo.pipeline import StereoPipeline
+from ..stereo.pipeline import mmap_large_arrays, StereoPipeline
 
 PROG = 'gcp-stereo-bag'
 IMAGE, INFO, STRING = 'sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'std_msgs/msg/String'
@@ -145,12 +149,18 @@ def output_bag(out, storage, force):
     Yield a rosbags Writer on a hidden staging sibling of `out`.
 
     The bag is moved to `out` only if the block succeeds; the staging folder is removed either
-    way. An existing `out` needs `force`.
+    way, and those of killed runs (their process gone) before this one starts. An existing
+    `out` needs `force`.
     """
     out = Path(out)
     if out.exists() and not force:
         raise ValueError(f'{out} exists; pass --force to replace it')
-    staging = out.with_name(f'.{out.name}.partial-{os.getpid()}')
+    prefix = f'.{out.name}.partial-'
+    for old in out.parent.glob(prefix + '*'):
+        pid = old.name[len(prefix):]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
+    staging = out.with_name(f'{prefix}{os.getpid()}')
     staging.mkdir(parents=True)
     try:
         with Writer(staging / out.name, version=Writer.VERSION_LATEST,
@@ -163,6 +173,16 @@ def output_bag(out, storage, force):
         (staging / out.name).rename(out)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        pass
+    return True
 
 
 # ---- make -------------------------------------------------------------------------------
@@ -253,6 +273,8 @@ class Runner:
 
     def __init__(self, pipeline, sync, writer, namespace, png_dir):
         self.pipeline, self.sync, self.writer, self.png_dir = pipeline, sync, writer, png_dir
+        self.processed = 0
+        self.skipped = 0
         self.conns = {name: writer.add_connection(topic_name(namespace, name), msgtype,
                                                   typestore=TYPESTORE,
                                                   offered_qos_profiles=[NODE_OUT_QOS])
@@ -270,17 +292,24 @@ class Runner:
         elif name.endswith('camera_info'):
             self.info[side] = msg
         else:
-            pair = self.sync.add(side, messages.stamp_ns(msg.header), msg)
+            pair = self.sync.add(side, messages.stamp_ns(msg.header), msg, len(msg.data))
             if pair is not None:
                 self.process(*pair, timestamp)
 
     def process(self, stamp, left_msg, right_msg, timestamp):
         config = self.pipeline.config
-        left = image_to_array(left_msg, self.topics['left/image_rect'])
-        right = image_to_array(right_msg, self.topics['right/image_rect'])
-        result = self.pipeline(left, right)
+        try:
+            left = image_to_array(left_msg, self.topics['left/image_rect'])
+            right = image_to_array(right_msg, self.topics['right/image_rect'])
+            geom = messages.geometry(self.info['left'], self.info['right'], left.shape[:2],
+                                     config.max_disp)
+            result = self.pipeline(left, right)
+        except ValueError as err:  # as the node: say why, go on with the next pair
+            self.skipped += 1
+            tqdm.write(f'{PROG} run: skipping pair at stamp {stamp} ns: {err}', file=sys.stderr)
+            return
+        self.processed += 1
         header = left_msg.header
-        geom = messages.geometry(self.info['left'], self.info['right'])
         out = {'disparity': messages.disparity_message(TYPES, header, result.disparity,
                                                        config, geom)}
         if result.gcp is not None:
@@ -310,9 +339,12 @@ class Runner:
 
 def run(args):
     values = load_params_file(args.params) if args.params else {}
+    mmap_large_arrays()
     pipeline = StereoPipeline(config_from_params(values))
     if pipeline.config.use_gcp:
         pipeline.net  # a missing weights file fails here, before any output
+    for text in config_warnings(pipeline.config):
+        print(f'{PROG} run: warning: {text}', file=sys.stderr)
     sync = make_sync(values)
     with open_bag(args.inp) as reader, output_bag(args.out, args.storage, args.force) as writer:
         names = check_topics(reader, args.inp, args.namespace)
@@ -338,11 +370,14 @@ def run(args):
                     bar.update(sync.pairs - bar.n)
         if sync.pairs == 0:
             raise ValueError(f'{args.inp}: no left/right image pair with matching stamps')
+        if runner.processed == 0:
+            raise ValueError(f'{args.inp}: none of its {sync.pairs} pairs could be processed '
+                             '(reasons above)')
     if runner.rates:
         print_rates('mean', {k: float(np.mean([r[k] for r in runner.rates])) for k in RATE_KEYS})
         print('(% of scored ground-truth pixels with error > N px; mae in px)')
-    print(f'{args.out}: {sync.pairs} pairs processed; images without a twin skipped: '
-          f'left {sync.dropped_left}, right {sync.dropped_right}')
+    print(f'{args.out}: {runner.processed} pairs processed, {runner.skipped} skipped; images '
+          f'without a twin skipped: left {sync.dropped_left}, right {sync.dropped_right}')
 
 
 # ---- play -------------------------------------------------------------------------------
@@ -420,6 +455,7 @@ def play(args):
             images = [publishers[c.topic] for c in reader.connections
                       if c.msgtype == IMAGE and c.topic in publishers and '/gt/' not in c.topic]
             wait_for_subscribers(images, args.wait_subscribers)
+            segment, too_large = shm_segment_bytes(), set()
             while True:
                 start = None
                 for conn, timestamp, raw in read_messages(reader, args.inp):
@@ -430,6 +466,14 @@ def play(args):
                     delay = start[1] + (timestamp - start[0]) / 1e9 / args.rate - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
+                    if len(raw) > segment and conn.topic not in too_large:
+                        too_large.add(conn.topic)
+                        print(f'{PROG} play: warning: {conn.topic} has messages of '
+                              f'{len(raw) / (1 << 20):.1f} MiB, more than the '
+                              f'{segment / (1 << 20):g} MiB Fast DDS shared-memory segment '
+                              '(FASTRTPS_DEFAULT_PROFILES_FILE): subscribers on this host will '
+                              'likely lose them; raise segment_size in the profile',
+                              file=sys.stderr)
                     publishers[conn.topic].publish(bytes(raw))  # serialized CDR, published as is
                 if start is None:
                     raise ValueError(f'{args.inp}: no message to play')
@@ -506,9 +550,18 @@ def parser():
     return ap
 
 
+class Terminated(BaseException):
+    """SIGTERM, raised like KeyboardInterrupt so that every `finally` runs."""
+
+
+def _terminate(signum, frame):
+    raise Terminated
+
+
 def main(argv=None):
     args = parser().parse_args(argv)
     unwritten = f'; {args.out} not written' if args.command != 'play' else ''
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         {'make': make, 'run': run, 'play': play}[args.command](args)
     except (ValueError, OSError, WriterError, TypesysError) as err:
@@ -517,6 +570,11 @@ def main(argv=None):
     except KeyboardInterrupt:
         print(f'{PROG} {args.command}: interrupted{unwritten}', file=sys.stderr)
         return 130
+    except Terminated:
+        print(f'{PROG} {args.command}: terminated{unwritten}', file=sys.stderr)
+        return 128 + signal.SIGTERM
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0
 
 
