@@ -59,14 +59,15 @@ PARAMS = (
           'left-right consistency check (invalid pixels published as -1)', 'lr_check'),
     Param('median', _D.median, '3x3 median filter on the disparity', 'median'),
     Param('memory_limit_mb', _D.memory_limit_mb,
-          'memory budget in MiB of one pair: a pair that would need more is refused, saying '
-          'what to lower; each sync queue holds at most a quarter of it',
+          'memory budget in MiB of processing one pair: a pair that would need more is '
+          'refused, saying what to lower',
           'memory_limit_mb', (64, 1 << 20, 1)),
     Param('approximate_sync', False,
           'pair left/right images whose stamps differ by at most the tolerance'),
     Param('approximate_sync_tolerance_seconds', 0.0,
           'largest stamp difference of an approximate pair', range=(0.0, 10.0, 0.0)),
-    Param('queue_size', 5, 'images kept per side while waiting for the twin', range=(1, 1000, 1)),
+    Param('queue_size', 5, 'images kept per side while waiting for the twin (at most '
+          'memory_limit_mb / 4 of them in bytes)', range=(1, 1000, 1)),
     Param('log_every_n_frames', 30,
           'log stage timings, input rate and drops every N frames (0 = never)',
           range=(0, 100000, 1)),

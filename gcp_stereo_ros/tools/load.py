@@ -19,9 +19,10 @@ from ..ros.messages import stamp_ns
 from ..ros.rosimage import array_to_image_fields
 
 
-def rss_mb(pid):
+def rss_mb(pid, key='VmRSS'):
+    """Return the resident memory of process `pid` in MiB (`key` 'VmHWM': its peak)."""
     for line in Path(f'/proc/{pid}/status').read_text().splitlines():
-        if line.startswith('VmRSS:'):
+        if line.startswith(key + ':'):
             return int(line.split()[1]) / 1024.0
     return float('nan')
 
