@@ -19,7 +19,7 @@ from ..evaluation.datasets import list_frames, load_frame
 from ..evaluation.metrics import error_rates
 from ..evaluation.viz import colorize, save_png
 from ..stereo.images import gray_pair
-from ..stereo.pipeline import StereoConfig, StereoPipeline
+from ..stereo.pipeline import PRESETS, StereoConfig, StereoPipeline
 
 METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
 
@@ -47,28 +47,28 @@ def opencv_sgbm(left, right, max_disp, block=5):
     return disp
 
 
-def method_config(method, max_disp, paths=16, overrides=None):
-    """
-    Return the StereoConfig of a pipeline method ('sad', 'census+gcp', ...).
-
-    The cost's defaults, with `overrides` (a dict of StereoConfig fields) applied on top.
-    """
-    cost, _, gcp = method.partition('+')
-    return StereoConfig.for_cost(cost, use_gcp=bool(gcp), max_disp=max_disp, paths=paths,
-                                 **(overrides or {}))
-
-
 class Runner:
     """Runs any method of METHODS on frames, sharing one loaded CNN."""
 
-    def __init__(self, paths=16, overrides=None):
+    def __init__(self, paths=16, overrides=None, preset='default'):
         self.paths = paths
         self.overrides = dict(overrides or {})
-        self._pipeline = StereoPipeline(method_config('census', 16, paths, self.overrides))
+        self.preset = preset
+        self._pipeline = StereoPipeline(self.config('census', 16))
+
+    def config(self, method, max_disp, point=None):
+        """
+        Return the StereoConfig of a pipeline method ('sad', 'census+gcp', ...).
+
+        The preset's values for the cost ('default' or 'paper'), then the overrides (a dict
+        of StereoConfig fields), then those of a sweep's grid `point`.
+        """
+        cost, _, gcp = method.partition('+')
+        return StereoConfig.for_cost(cost, self.preset, use_gcp=bool(gcp), max_disp=max_disp,
+                                     paths=self.paths, **{**self.overrides, **(point or {})})
 
     def pipeline(self, method, max_disp):
-        self._pipeline = self._pipeline.with_config(
-            method_config(method, max_disp, self.paths, self.overrides))
+        self._pipeline = self._pipeline.with_config(self.config(method, max_disp))
         return self._pipeline
 
     def run(self, method, left, right, max_disp):
@@ -139,13 +139,16 @@ def main(argv=None):
     ap.add_argument('--max-disp', type=int,
                     help="disparities searched (default: each frame's own)")
     ap.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
+    ap.add_argument('--preset', default='default', choices=tuple(PRESETS),
+                    help='parameter values before --set: the cross-validated defaults or '
+                         "the paper's (Table 1's paper rows)")
     ap.add_argument('--set', action='append', metavar='KEY=VALUE',
                     help='override a pipeline parameter (e.g. theta=0.7, bf16=true); repeatable')
     ap.add_argument('--json', type=Path, help='write one row per (method, frame) to this file')
     ap.add_argument('--out', type=Path, help='write colour-mapped disparity PNGs here')
     args = ap.parse_args(argv)
 
-    runner = Runner(args.paths, parse_overrides(args.set))
+    runner = Runner(args.paths, parse_overrides(args.set), args.preset)
     rows = []
     frames = select_frames(args.dataset, args.frames)
     with tqdm(total=len(frames) * len(args.methods), unit='run', leave=False) as bar:

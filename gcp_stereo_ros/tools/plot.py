@@ -15,7 +15,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from .evaluate import method_config, parse_overrides, Runner, select_frames
+from .evaluate import parse_overrides, Runner, select_frames
 from ..evaluation.datasets import load_frame
 from ..evaluation.metrics import error_rates
 from ..stereo.gcp import gcp_quality
@@ -52,8 +52,7 @@ def sweep(args):
         for values in itertools.product(*grid.values()):
             point = dict(zip(grid, values))
             try:
-                config = method_config(args.method, max_disp, args.paths,
-                                       {**runner.overrides, **point})
+                config = runner.config(args.method, max_disp, point)
             except ValueError:  # e.g. P2 < P1: not a valid set-up, so not a candidate
                 continue
             pipe = base.with_config(config)
