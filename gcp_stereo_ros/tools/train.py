@@ -47,6 +47,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from .cli import console_main
 from ..evaluation.datasets import load_frames
 from ..stereo.cnn import confidence, GcpNet, network_input, PAD
 from ..stereo.gcp import gcp_quality, right_view_agrees
@@ -217,6 +218,7 @@ def parse_args(argv):
     return args
 
 
+@console_main('gcp-stereo-train')
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     args = parse_args(argv)
@@ -276,4 +278,4 @@ def main(argv=None):
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
