@@ -46,6 +46,7 @@ import torch
 from tqdm import tqdm
 import yaml
 
+from .cli import console_main
 from ..evaluation.datasets import load_frames
 from ..stereo.cnn import confidence, GcpNet, network_input, PAD
 from ..stereo.gcp import gcp_quality, right_view_agrees
@@ -272,6 +273,7 @@ def parse_args(argv):
     return args
 
 
+@console_main('gcp-stereo-train')
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     args = parse_args(argv)
@@ -347,4 +349,4 @@ def main(argv=None):
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
