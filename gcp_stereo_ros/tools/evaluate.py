@@ -8,6 +8,7 @@ import argparse
 import fnmatch
 import json
 from pathlib import Path
+import sys
 import time
 
 import cv2
@@ -127,10 +128,9 @@ def parse_overrides(items):
     return out
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument('--dataset', action='append', required=True,
+def add_options(ap, dataset_required=True):
+    """Add the options that choose frames, methods and settings (all but --out) to `ap`."""
+    ap.add_argument('--dataset', action='append', required=dataset_required,
                     help='dataset folder in any supported layout (searched recursively; for KITTI '
                          "the folder holding training/), or 'motorcycle'; repeatable")
     ap.add_argument('--frames', nargs='+', help='frame names or shell patterns (default: all)')
@@ -142,33 +142,61 @@ def main(argv=None):
     ap.add_argument('--set', action='append', metavar='KEY=VALUE',
                     help='override a pipeline parameter (e.g. theta=0.7, bf16=true); repeatable')
     ap.add_argument('--json', type=Path, help='write one row per (method, frame) to this file')
-    ap.add_argument('--out', type=Path, help='write colour-mapped disparity PNGs here')
-    args = ap.parse_args(argv)
 
-    runner = Runner(args.paths, parse_overrides(args.set))
+
+def make_runner(args):
+    """Return the Runner of the options of `add_options`."""
+    return Runner(args.paths, parse_overrides(args.set))
+
+
+def frame_rows(runner, args, source, name):
+    """
+    Return the rows of frame `name` of `source`, one per method of args.methods.
+
+    Writes its colour-mapped disparity PNGs into args.out if set. Raises ValueError if the
+    frame has no ground truth.
+    """
+    frame = load_frame(source, name)
+    if frame.gt is None:
+        raise ValueError(f'frame {name} has no ground truth to evaluate against')
+    max_disp = args.max_disp or frame.max_disp
     rows = []
-    frames = select_frames(args.dataset, args.frames)
-    with tqdm(total=len(frames) * len(args.methods), unit='run', leave=False) as bar:
-        for source, name in frames:
-            frame = load_frame(source, name)
-            if frame.gt is None:
-                raise SystemExit(f'frame {name} has no ground truth to evaluate against')
-            max_disp = args.max_disp or frame.max_disp
-            for method in args.methods:
-                bar.set_description(f'{method} {name}')
-                disp, _, seconds = runner.run(method, frame.left, frame.right, max_disp)
-                rates = error_rates(disp, frame.gt, frame.valid)
-                rows.append({'method': method, 'frame': name, **rates, 'seconds': seconds})
-                if args.out:
-                    save_png(args.out / f'{name.replace("/", "_")}_{method}.png',
-                             colorize(disp, max_disp))
-                bar.update()
-    print(table(rows, args.methods))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=1))
+    for method in args.methods:
+        disp, _, seconds = runner.run(method, frame.left, frame.right, max_disp)
+        rows.append({'method': method, 'frame': name, **error_rates(disp, frame.gt, frame.valid),
+                     'seconds': seconds})
+        if args.out:
+            save_png(args.out / f'{name.replace("/", "_")}_{method}.png', colorize(disp, max_disp))
     return rows
 
 
+def write_rows(path, rows):
+    """Write `rows` as JSON to `path`, replacing it only once the file is complete."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f'.{path.name}.partial')
+    partial.write_text(json.dumps(rows, indent=1))
+    partial.replace(path)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_options(ap)
+    ap.add_argument('--out', type=Path, help='write colour-mapped disparity PNGs here')
+    args = ap.parse_args(argv)
+
+    runner = make_runner(args)
+    rows = []
+    for source, name in tqdm(select_frames(args.dataset, args.frames), unit='frame', leave=False):
+        try:
+            rows += frame_rows(runner, args, source, name)
+        except ValueError as err:
+            raise SystemExit(f'gcp-stereo-eval: error: {err}') from None
+    print(table(rows, args.methods))
+    if args.json:
+        write_rows(args.json, rows)
+    return 0
+
+
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
