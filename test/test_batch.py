@@ -44,7 +44,7 @@ def bags(tmp_path_factory, data_dir):
 @pytest.fixture(scope='module')
 def local_ray():
     """Start a short-lived local Ray instance of 2 CPUs, as the tool does with --workers 2."""
-    ray.init(num_cpus=2, include_dashboard=False, logging_level=logging.WARNING,
+    ray.init(address='local', num_cpus=2, include_dashboard=False, logging_level=logging.WARNING,
              runtime_env=batch.RUNTIME_ENV)
     yield
     ray.shutdown()

@@ -184,7 +184,8 @@ def start_ray(args):
                 raise ConnectionError(f'no Ray cluster at {args.address}: {err}') from None
         ray.init(address=args.address, runtime_env=RUNTIME_ENV, logging_level=logging.WARNING)
     else:
-        ray.init(num_cpus=args.workers * args.threads, include_dashboard=False,
+        # 'local': a new instance, even where `ray start` left a cluster to join by default
+        ray.init(address='local', num_cpus=args.workers * args.threads, include_dashboard=False,
                  runtime_env=RUNTIME_ENV, logging_level=logging.WARNING)
     return True
 

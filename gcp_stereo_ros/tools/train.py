@@ -157,7 +157,8 @@ def crop_scores(net, crop):
 
 
 def hinge(s_pos, s_neg):
-    return torch.relu(MARGIN + s_neg - s_pos).mean()
+    """Return the hinge loss of every pixel."""
+    return torch.relu(MARGIN + s_neg - s_pos)
 
 
 class CropLoss(nn.Module):
@@ -169,7 +170,7 @@ class CropLoss(nn.Module):
 
     def forward(self, crops):
         s_pos, s_neg = (torch.cat(s) for s in zip(*(crop_scores(self.net, c) for c in crops)))
-        return torch.relu(MARGIN + s_neg - s_pos).sum()
+        return hinge(s_pos, s_neg).sum()
 
 
 def train_step(model, optimizer, train_views, rng, batch_size, bf16=False, rank=0, world=1):
@@ -212,7 +213,7 @@ def validate(net, frames, thetas):
     with torch.no_grad():
         for f in frames:
             rng = np.random.default_rng(0)
-            loss = float(hinge(*crop_scores(net, draw_crop(views(f, device)[0], rng))))
+            loss = float(hinge(*crop_scores(net, draw_crop(views(f, device)[0], rng))).mean())
             cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp, device)
             stats = {f'{t:g}': gcp_quality(cof_c > t, cof_d, f.gt, f.valid) for t in thetas}
             out[f.name] = {'loss': loss,
