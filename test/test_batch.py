@@ -59,6 +59,25 @@ def messages(path):
     return out
 
 
+def test_bad_arguments_are_refused(bags, tmp_path, capsys):
+    """Bad options, bags and addresses are refused before any Ray starts (so test this first)."""
+    assert not ray.is_initialized()
+    root, _ = bags
+    with pytest.raises(SystemExit):
+        batch.parse_args(['--bags', str(root / 'in')])  # no --out
+    with pytest.raises(SystemExit):
+        batch.parse_args(['--bags', 'x', '--dataset', 'y', '--out', 'z'])
+    with pytest.raises(SystemExit):
+        batch.parse_args(['--bags', 'x', '--out', 'z', '--json', 'rows.json'])
+    assert batch.main(['--bags', str(tmp_path / 'nothing*'), '--out', str(tmp_path)]) == 1
+    assert 'gcp-stereo-batch: error: no bag found' in capsys.readouterr().err
+    assert batch.main(['--bags', str(root / 'in'), '--out', str(root / 'in')]) == 1
+    assert '--out would replace input bags' in capsys.readouterr().err
+    assert batch.main(['--address', '127.0.0.1:9', '--bags', str(root / 'in'), '--out',
+                       str(tmp_path)]) == 1
+    assert 'no Ray cluster at 127.0.0.1:9' in capsys.readouterr().err
+
+
 @pytest.fixture(scope='module')
 def cli_run(bags):
     """Run the tool as a user does, Ray started by it with 2 workers: (process, out folder)."""
@@ -145,17 +164,3 @@ def test_worker_keeps_one_runner_and_its_threads(data_dir, monkeypatch):
         batch.limit_threads(threads[0])
         numba.set_num_threads(threads[1])
     assert len(made) == 1
-
-
-def test_bad_arguments_are_refused(bags, tmp_path, capsys):
-    root, _ = bags
-    with pytest.raises(SystemExit):
-        batch.parse_args(['--bags', str(root / 'in')])  # no --out
-    with pytest.raises(SystemExit):
-        batch.parse_args(['--bags', 'x', '--dataset', 'y', '--out', 'z'])
-    with pytest.raises(SystemExit):
-        batch.parse_args(['--bags', 'x', '--out', 'z', '--json', 'rows.json'])
-    assert batch.main(['--bags', str(tmp_path / 'nothing*'), '--out', str(tmp_path)]) == 2
-    assert 'no bag found' in capsys.readouterr().err
-    assert batch.main(['--bags', str(root / 'in'), '--out', str(root / 'in')]) == 2
-    assert '--out would replace input bags' in capsys.readouterr().err

@@ -211,13 +211,18 @@ def test_set_parameters_live(harness, pair):
         ({'cost': 'ncc'}, 'cost'),
         ({'weights': '/no/such/weights.pt'}, '/no/such/weights.pt'),
         ({'window': 10}, 'window'),
+        ({'bf16': 'maybe'}, 'bf16'),
     ]:
         (result,) = harness.set_params(**values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
     assert harness.node.get_parameter('theta').value == 0.95
+    for bf16 in (True, 'auto', False):  # true, false or 'auto': one parameter, two types
+        assert all(r.successful for r in harness.set_params(bf16=bf16))
+        assert harness.node.params.pipeline.config.bf16 == bf16
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity after set')
-    overrides = {**harness.overrides, 'theta': 0.95, 'P1': 6.0, 'P2': 100.0, 'paths': 8}
+    overrides = {**harness.overrides, 'theta': 0.95, 'P1': 6.0, 'P2': 100.0, 'paths': 8,
+                 'bf16': False}
     want, result = expected(overrides, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
     np.testing.assert_array_equal(image_to_array(harness.gcp[-1]),

@@ -38,6 +38,7 @@ import torch
 from tqdm import tqdm
 
 from . import bag, evaluate
+from .cli import console_main, positive_int
 
 PROG = 'gcp-stereo-batch'
 CORES = os.cpu_count() or 1
@@ -77,11 +78,11 @@ def bag_task(options, inp, out, png):
 
 @ray.remote
 def frame_task(options, source, name):
-    """Return the `gcp-stereo-eval` rows of frame `name` of `source`."""
+    """Return the `gcp-stereo-eval` (rows, note) of frame `name` of `source`."""
     limit_threads(options.threads)
-    runner = _kept(('eval', options.paths, tuple(options.set or ())),
+    runner = _kept(('eval', options.paths, options.preset, tuple(options.set or ())),
                    lambda: evaluate.make_runner(options))
-    return evaluate.frame_rows(runner, options, source, name)
+    return evaluate.evaluate_frame(runner, options, source, name)
 
 
 # ---- items ------------------------------------------------------------------------------
@@ -182,7 +183,13 @@ def start_ray(args):
                 socket.create_connection((host, int(port)), timeout=10).close()
             except OSError as err:
                 raise ConnectionError(f'no Ray cluster at {args.address}: {err}') from None
-        ray.init(address=args.address, runtime_env=RUNTIME_ENV, logging_level=logging.WARNING)
+        try:
+            ray.init(address=args.address, runtime_env=RUNTIME_ENV,
+                     logging_level=logging.WARNING)
+        except ConnectionError as err:  # e.g. the cluster's token missing here: say why
+            if err.__cause__:
+                err.add_note(str(err.__cause__).strip().splitlines()[-1])
+            raise
     else:
         # 'local': a new instance, even where `ray start` left a cluster to join by default
         ray.init(address='local', num_cpus=args.workers * args.threads, include_dashboard=False,
@@ -228,13 +235,14 @@ def run_bags(args, todo):
 def run_frames(args, items, todo, rows):
     """Evaluate the frames `todo`, adding their rows to `rows`; write --json as they come."""
     last = time.monotonic()
+    notes = {}
 
     def ordered():  # as gcp-stereo-eval orders them
         return [r for _, name in items for r in rows.get(name, [])]
 
     def done(item, result):
         nonlocal last
-        rows[item[1]] = result
+        rows[item[1]], notes[item[1]] = result
         if args.json and time.monotonic() - last > JSON_EVERY_SECONDS:
             evaluate.write_rows(args.json, ordered())
             last = time.monotonic()
@@ -243,20 +251,13 @@ def run_frames(args, items, todo, rows):
     refs = {task.remote(args, *item): item for item in todo}
     failed = run_items(refs, lambda item: item[1], done)
     if rows:
-        print(evaluate.table(ordered(), args.methods))
+        evaluate.print_results(ordered(), args.methods, notes)
     if args.json:
         evaluate.write_rows(args.json, ordered())
     return failed
 
 
 # ---- command line -----------------------------------------------------------------------
-def _at_least_one(text):
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f'must be at least 1, got {text}')
-    return value
-
-
 def parser():
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -276,9 +277,9 @@ def parser():
     cluster.add_argument('--address', metavar='HOST:PORT',
                          help="join this running Ray cluster (or 'auto': the one started on "
                               'this machine by `ray start`) instead of starting Ray here')
-    cluster.add_argument('--workers', type=_at_least_one,
+    cluster.add_argument('--workers', type=positive_int,
                          help=f'local Ray: worker processes (default: the cores, {CORES})')
-    cluster.add_argument('--threads', type=_at_least_one,
+    cluster.add_argument('--threads', type=positive_int,
                          help='compute threads per worker, and the CPUs each item asks Ray for '
                               '(default: cores // workers locally, 1 on a cluster)')
     return ap
@@ -307,43 +308,32 @@ def parse_args(argv):
     return args
 
 
+@console_main(PROG)
 def main(argv=None):
     args = parse_args(argv)
     rows = {}
-    try:
-        if args.bags:  # settings and weights are checked here once, not by every item
-            bag.run_pipeline(bag.load_params_file(args.params) if args.params else {})
-            items, todo = bag_items(args)
-            args.out.mkdir(parents=True, exist_ok=True)
-        else:
-            evaluate.make_runner(args)
-            rows = earlier_rows(args)
-            items, todo = frame_items(args, rows)
-    except (ValueError, OSError) as err:
-        print(f'{PROG}: error: {err}', file=sys.stderr)
-        return 2
+    if args.bags:  # settings and weights are checked here once, not by every item
+        bag.run_pipeline(bag.load_params_file(args.params) if args.params else {})
+        items, todo = bag_items(args)
+        args.out.mkdir(parents=True, exist_ok=True)
+    else:
+        evaluate.make_runner(args)
+        rows = earlier_rows(args)
+        items, todo = frame_items(args, rows)
     skipped = len(items) - len(todo)
     if skipped:
         print(f'{PROG}: skipping {skipped} item(s) whose output exists (--force redoes them)')
-    try:
-        started = start_ray(args) if todo else False
-    except ConnectionError as err:  # no cluster there, or its token is missing
-        cause = f' ({err.__cause__})' if err.__cause__ else ''
-        print(f'{PROG}: error: {err}{cause}', file=sys.stderr)
-        return 2
+    started = start_ray(args) if todo else False
     try:
         failed = (run_bags(args, todo) if args.bags else
                   run_frames(args, items, todo, rows))
-    except KeyboardInterrupt:
-        print(f'{PROG}: interrupted', file=sys.stderr)
-        return 130
     finally:
         if started:
             ray.shutdown()
     print(f'{PROG}: {len(todo) - len(failed)} done, {skipped} skipped, {len(failed)} failed')
     for label, reason in failed:
         print(f'{PROG}: failed: {label}: {reason}', file=sys.stderr)
-    return 1 if failed else 0
+    return 1 if failed else None
 
 
 if __name__ == '__main__':

@@ -11,11 +11,13 @@ import json
 from pathlib import Path
 import resource
 import statistics
+import sys
 import time
 
 import cv2
 import numpy as np
 
+from .cli import console_main, positive_int
 from .evaluate import opencv_sgbm
 from ..evaluation.datasets import list_frames, load_frame
 from ..stereo.cost import cost_volume
@@ -60,14 +62,15 @@ def volume_stage_seconds(left, right, nd, repeat):
     return {name: median_seconds(fn, repeat) for name, fn in stages.items()}
 
 
+@console_main('gcp-stereo-bench')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--dataset', default='motorcycle',
                     help="dataset of the pair (default: 'motorcycle')")
     ap.add_argument('--frame', help='frame name in that dataset (default: the first)')
-    ap.add_argument('--max-disp', type=int, default=128)
-    ap.add_argument('--repeat', type=int, default=5)
+    ap.add_argument('--max-disp', type=positive_int, default=128)
+    ap.add_argument('--repeat', type=positive_int, default=5)
     ap.add_argument('--json', type=Path, help='write {"stages", "ratios", "peak_rss_mb"} here')
     args = ap.parse_args(argv)
 
@@ -102,4 +105,4 @@ def main(argv=None):
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

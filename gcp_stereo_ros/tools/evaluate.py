@@ -16,13 +16,15 @@ import numpy as np
 from tqdm import tqdm
 import yaml
 
+from .cli import console_main, positive_int
 from ..evaluation.datasets import list_frames, load_frame
 from ..evaluation.metrics import error_rates
 from ..evaluation.viz import colorize, save_png
 from ..stereo.images import gray_pair
-from ..stereo.pipeline import StereoConfig, StereoPipeline
+from ..stereo.pipeline import PRESETS, StereoConfig, StereoPipeline
 
 METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
+FIELDS = sorted(StereoConfig.__dataclass_fields__)  # the parameters --set may override
 
 
 def opencv_sgbm(left, right, max_disp, block=5):
@@ -48,28 +50,28 @@ def opencv_sgbm(left, right, max_disp, block=5):
     return disp
 
 
-def method_config(method, max_disp, paths=16, overrides=None):
-    """
-    Return the StereoConfig of a pipeline method ('sad', 'census+gcp', ...).
-
-    The cost's defaults, with `overrides` (a dict of StereoConfig fields) applied on top.
-    """
-    cost, _, gcp = method.partition('+')
-    return StereoConfig.for_cost(cost, use_gcp=bool(gcp), max_disp=max_disp, paths=paths,
-                                 **(overrides or {}))
-
-
 class Runner:
     """Runs any method of METHODS on frames, sharing one loaded CNN."""
 
-    def __init__(self, paths=16, overrides=None):
+    def __init__(self, paths=16, overrides=None, preset='default'):
         self.paths = paths
         self.overrides = dict(overrides or {})
-        self._pipeline = StereoPipeline(method_config('census', 16, paths, self.overrides))
+        self.preset = preset
+        self._pipeline = StereoPipeline(self.config('census', 16))
+
+    def config(self, method, max_disp, point=None):
+        """
+        Return the StereoConfig of a pipeline method ('sad', 'census+gcp', ...).
+
+        The preset's values for the cost ('default' or 'paper'), then the overrides (a dict
+        of StereoConfig fields), then those of a sweep's grid `point`.
+        """
+        cost, _, gcp = method.partition('+')
+        return StereoConfig.for_cost(cost, self.preset, use_gcp=bool(gcp), max_disp=max_disp,
+                                     paths=self.paths, **{**self.overrides, **(point or {})})
 
     def pipeline(self, method, max_disp):
-        self._pipeline = self._pipeline.with_config(
-            method_config(method, max_disp, self.paths, self.overrides))
+        self._pipeline = self._pipeline.with_config(self.config(method, max_disp))
         return self._pipeline
 
     def run(self, method, left, right, max_disp):
@@ -97,7 +99,7 @@ def select_frames(sources, patterns):
         picked = [n for n in names if not patterns or any(fnmatch.fnmatch(n, p) for p in patterns)]
         chosen += [(source, n) for n in picked]
     if not chosen:
-        raise SystemExit(f'no frame in {sources} matches {patterns}')
+        raise ValueError(f'no frame in {sources} matches {patterns}')
     return chosen
 
 
@@ -117,14 +119,16 @@ def table(rows, methods, key='bad3'):
 
 def parse_overrides(items):
     """`KEY=VALUE` strings (VALUE parsed as YAML) into a dict of StereoConfig fields."""
-    fields = set(StereoConfig.__dataclass_fields__)
     out = {}
     for item in items or []:
         key, sep, value = item.partition('=')
-        if not sep or key not in fields:
-            raise SystemExit(f'--set expects KEY=VALUE with KEY among {sorted(fields)}, '
+        if not sep or key not in FIELDS:
+            raise ValueError(f'--set expects KEY=VALUE with KEY among {FIELDS}, '
                              f'got {item!r}')
-        out[key] = yaml.safe_load(value)
+        try:
+            out[key] = yaml.safe_load(value)
+        except yaml.YAMLError:
+            raise ValueError(f'--set {item!r}: VALUE is not a YAML scalar') from None
     return out
 
 
@@ -136,9 +140,12 @@ def add_options(ap, dataset_required=True):
     ap.add_argument('--frames', nargs='+', help='frame names or shell patterns (default: all)')
     ap.add_argument('--methods', nargs='+', default=['sad', 'census', 'opencv-sgbm'],
                     choices=METHODS)
-    ap.add_argument('--max-disp', type=int,
+    ap.add_argument('--max-disp', type=positive_int,
                     help="disparities searched (default: each frame's own)")
     ap.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
+    ap.add_argument('--preset', default='default', choices=tuple(PRESETS),
+                    help='parameter values before --set: the cross-validated defaults or '
+                         "the paper's (Table 1's paper rows)")
     ap.add_argument('--set', action='append', metavar='KEY=VALUE',
                     help='override a pipeline parameter (e.g. theta=0.7, bf16=true); repeatable')
     ap.add_argument('--json', type=Path, help='write one row per (method, frame) to this file')
@@ -146,15 +153,16 @@ def add_options(ap, dataset_required=True):
 
 def make_runner(args):
     """Return the Runner of the options of `add_options`."""
-    return Runner(args.paths, parse_overrides(args.set))
+    return Runner(args.paths, parse_overrides(args.set), args.preset)
 
 
-def frame_rows(runner, args, source, name):
+def evaluate_frame(runner, args, source, name):
     """
-    Return the rows of frame `name` of `source`, one per method of args.methods.
+    Return (rows, note) of frame `name` of `source`: one row per method of args.methods.
 
-    Writes its colour-mapped disparity PNGs into args.out if set. Raises ValueError if the
-    frame has no ground truth.
+    The note (or '') says how the frame's scoring departs from its benchmark's. Writes the
+    colour-mapped disparity PNGs into args.out if set. Raises ValueError if the frame has
+    no ground truth.
     """
     frame = load_frame(source, name)
     if frame.gt is None:
@@ -167,7 +175,15 @@ def frame_rows(runner, args, source, name):
                      'seconds': seconds})
         if args.out:
             save_png(args.out / f'{name.replace("/", "_")}_{method}.png', colorize(disp, max_disp))
-    return rows
+    return rows, frame.note or ''
+
+
+def print_results(rows, methods, notes):
+    """Print the table of `rows` and the frames' notes ({frame name: note})."""
+    print(table(rows, methods))
+    for name, note in notes.items():
+        if note:
+            print(f'note: {name}: {note}')
 
 
 def write_rows(path, rows):
@@ -178,6 +194,7 @@ def write_rows(path, rows):
     partial.replace(path)
 
 
+@console_main('gcp-stereo-eval')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -186,16 +203,13 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     runner = make_runner(args)
-    rows = []
+    rows, notes = [], {}
     for source, name in tqdm(select_frames(args.dataset, args.frames), unit='frame', leave=False):
-        try:
-            rows += frame_rows(runner, args, source, name)
-        except ValueError as err:
-            raise SystemExit(f'gcp-stereo-eval: error: {err}') from None
-    print(table(rows, args.methods))
+        frame_rows, notes[name] = evaluate_frame(runner, args, source, name)
+        rows += frame_rows
+    print_results(rows, args.methods, notes)
     if args.json:
         write_rows(args.json, rows)
-    return 0
 
 
 if __name__ == '__main__':
