@@ -41,7 +41,9 @@ PARAMS = (
     Param('paths', _D.paths, 'SGM path directions: 4, 8 or 16', 'paths', (4, 16, 4)),
     Param('use_gcp', _D.use_gcp, 'refine the cost volume with CNN ground control points',
           'use_gcp'),
-    Param('theta', _D.theta, 'GCP threshold on the CNN confidence in [0, 1]',
+    Param('theta', _D.theta,
+          'GCP threshold on the calibrated CNN confidence: the probability that the '
+          "pixel's CNN disparity is within 1 px of the truth",
           'theta', (0.0, 1.0, 0.0)),
     Param('c_hi', _D.c_hi, 'cost given to every disparity of a non-GCP pixel',
           'c_hi', (0.0, 10000.0, 0.0)),

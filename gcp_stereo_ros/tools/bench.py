@@ -20,6 +20,7 @@ import numpy as np
 from .cli import console_main, positive_int
 from .evaluate import opencv_sgbm
 from ..evaluation.datasets import list_frames, load_frame
+from ..stereo.cnn import bf16_native
 from ..stereo.cost import cost_volume
 from ..stereo.images import gray_pair
 from ..stereo.pipeline import StereoConfig, StereoPipeline
@@ -81,9 +82,10 @@ def main(argv=None):
     print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, '
           f'repeat {args.repeat}')
     seconds = volume_stage_seconds(left, right, nd, args.repeat)
-    pipeline = StereoPipeline(StereoConfig.for_cost('census', max_disp=nd))
+    pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
+    print(f"pipeline: the defaults, bf16 'auto' = {bf16_native(pipeline.config.device)} here")
     breakdown = {}
-    for suffix, bf16 in (('', False), ('_bf16', True)):
+    for suffix, bf16 in (('', 'auto'), ('_fp32', False), ('_bf16', True)):
         pipe = pipeline.with_config(pipeline.config.replace(bf16=bf16))
         seconds['pipeline' + suffix], breakdown['pipeline' + suffix] = median_pipeline(
             pipe, left, right, args.repeat)
@@ -97,7 +99,7 @@ def main(argv=None):
         print(f'{name:<16}{s:9.3f}{ratios.get(name, 1.0):13.2f}')
     print(f'peak RSS {peak:.0f} MB')
     for name, stage_seconds in breakdown.items():
-        print(f'{name} = Census+GCP+SGM (16 paths) end to end; median of its stages:',
+        print(f'{name} = default Census+GCP+SGM end to end; median of its stages:',
               ', '.join(f'{k} {v:.3f} s' for k, v in stage_seconds.items()))
     if args.json:
         args.json.write_text(

@@ -58,7 +58,7 @@ def main(argv=None):
 
     rows = []
     with peer_graph('gcp_stereo_demo',
-                    params_file=package_file('config/gcp_stereo_tuned.yaml')) as (peer, node):
+                    params_file=package_file('config/gcp_stereo.yaml')) as (peer, node):
         from sensor_msgs.msg import Image
         from stereo_msgs.msg import DisparityImage
 
