@@ -253,7 +253,7 @@ def test_bad_input_bags_are_refused_without_output(tmp_path, params_file, capsys
         assert bag.main(['run', '--in', str(path), '--out', str(out),
                          '--params', str(params_file)]) != 0, case
         err = capsys.readouterr().err.strip().splitlines()[-1]
-        assert err.startswith('gcp-stereo-bag run: error: ') and REASONS[case] in err, (case, err)
+        assert err.startswith('gcp-stereo-bag: error: ') and REASONS[case] in err, (case, err)
         assert err.endswith(f'{out} not written'), err
         assert not out.exists(), case
     assert [p.name for p in tmp_path.iterdir() if 'partial' in p.name] == []
@@ -328,7 +328,7 @@ def test_staging_is_removed_on_sigterm_and_after_sigkill(tmp_path):
         if sig == signal.SIGTERM:
             assert proc.returncode == 128 + signal.SIGTERM, err
             assert err.strip().splitlines()[-1] == (
-                f'gcp-stereo-bag run: terminated; {out} not written')
+                f'gcp-stereo-bag: terminated; {out} not written')
             assert not staging.exists()
         else:
             assert staging.exists()  # nothing runs on SIGKILL ...

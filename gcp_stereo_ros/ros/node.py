@@ -31,6 +31,7 @@ import traceback
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import Image, RegionOfInterest
 from stereo_msgs.msg import DisparityImage
 
@@ -188,26 +189,36 @@ class GcpStereoNode(Node):
 
 def main(args=None):
     argv = sys.argv if args is None else args
-    try:
-        check_params_files(argv)  # rcl would say it with a traceback
-        mmap_large_arrays()
-        rclpy.init(args=argv)
-        node = GcpStereoNode()
-    except Exception as err:  # settings that cannot work: one line, no traceback
-        print(f'{NODE_NAME}: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
+    extra = remove_ros_args(argv)[1:]
+    if extra and extra[0] in ('-h', '--help'):
+        print(__doc__.strip())
+        return 0
+    if extra:  # ROS arguments go after --ros-args; anything else is a mistake
+        print(f'{NODE_NAME}: error: unrecognized arguments: {" ".join(extra)} '
+              '(parameters go after --ros-args, e.g. --ros-args -p max_disparity:=192)',
               file=sys.stderr)
-        rclpy.try_shutdown()
         return 2
+    node = None
     try:
+        try:
+            check_params_files(argv)  # rcl would say it with a traceback
+            mmap_large_arrays()
+            rclpy.init(args=argv)
+            node = GcpStereoNode()
+        except Exception as err:  # settings that cannot work: one line, no traceback
+            print(f'{NODE_NAME}: error: cannot start: '
+                  + (' '.join(str(err).split()) or repr(err)), file=sys.stderr)
+            return 2
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        pass  # Ctrl-C or shutdown, while starting or spinning
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):  # a second Ctrl-C must not abort the exit
             signal.signal(sig, signal.SIG_IGN)
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
-    if not node.stopped:  # the interpreter's exit would abort on the thread still running
+    if node is not None and not node.stopped:  # the interpreter's exit would abort on it
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(0)

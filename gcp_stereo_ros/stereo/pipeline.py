@@ -20,11 +20,22 @@ from .sgm import aggregate, directions, disparity, path_sum_bound, PATHS
 MIB = 1 << 20
 DEVICE = re.compile(r'cpu|cuda(:[0-9]+)?')
 
-# The paper's parameters for each matching cost (Zhong et al., section 4).
+# Defaults for each matching cost, chosen by cross-validation on the validation frames
+# (README: "Method and results"); theta is on the calibrated scale (cnn.calibrated).
 COST_DEFAULTS = {
-    'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3},
-    'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001},
+    'census': {'p1': 8.0, 'p2': 128.0, 'theta': 0.3, 'c_hi': 200.0, 'c_low': 5.0,
+               'gcp_lr_check': True},
+    'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.45, 'c_hi': 5.0, 'c_low': 0.001,
+            'gcp_lr_check': True},
 }
+# The paper's values (Zhong et al., section 4): its theta is read on our calibrated scale.
+PAPER = {
+    'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3,
+               'gcp_lr_check': False},
+    'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001,
+            'gcp_lr_check': False},
+}
+PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
 
 
 @dataclass(frozen=True)
@@ -40,10 +51,13 @@ class StereoConfig:
     c_hi: float = COST_DEFAULTS['census']['c_hi']
     c_low: float = COST_DEFAULTS['census']['c_low']
     # GCPs only where the right view's CNN disparity agrees (not in the paper).
-    gcp_lr_check: bool = False
+    gcp_lr_check: bool = COST_DEFAULTS['census']['gcp_lr_check']
     weights: str = ''  # '' = the weights shipped with the package
     device: str = 'cpu'
-    bf16: bool = False  # bfloat16 CNN descriptors (CPUs with avx512_bf16 / AMX, or CUDA)
+    # bfloat16 CNN descriptors: True, False or 'auto' (where native: CPUs with avx512_bf16
+    # or AMX, CUDA; see cnn.bf16_native). Off by default: on the validation frames it moved
+    # the error rates by up to 0.15 point, more than the 0.1 allowed (README, "Speed").
+    bf16: bool | str = False
     subpixel: bool = False
     lr_check: bool = False
     median: bool = False
@@ -52,11 +66,13 @@ class StereoConfig:
     memory_limit_mb: int = 3072
 
     @classmethod
-    def for_cost(cls, cost, **overrides):
-        """Return a config with the paper's defaults for `cost`, then `overrides` applied."""
-        if cost not in COST_DEFAULTS:
+    def for_cost(cls, cost, preset='default', **overrides):
+        """Return a config with the `preset`'s values for `cost`, then `overrides` applied."""
+        if preset not in PRESETS:
+            raise ValueError(f'preset must be one of {tuple(PRESETS)}, got {preset!r}')
+        if cost not in PRESETS[preset]:
             raise ValueError(f'cost must be one of {tuple(COST_DEFAULTS)}, got {cost!r}')
-        return cls(**{'cost': cost, **COST_DEFAULTS[cost], **overrides}).validate()
+        return cls(**{'cost': cost, **PRESETS[preset][cost], **overrides}).validate()
 
     def replace(self, **changes):
         return dataclasses.replace(self, **changes).validate()
@@ -81,6 +97,8 @@ class StereoConfig:
                              f'got {self.theta}')
         if self.c_low > self.c_hi:
             raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
+        if self.bf16 not in (True, False, 'auto'):
+            raise ValueError(f"bf16 must be true, false or 'auto', got {self.bf16!r}")
         if not (isinstance(self.device, str) and DEVICE.fullmatch(self.device)):
             raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
         if self.device != 'cpu':

@@ -35,7 +35,6 @@ import importlib
 import os
 from pathlib import Path
 import shutil
-import signal
 import sys
 import time
 from types import SimpleNamespace
@@ -48,6 +47,7 @@ from rosbags.rosbag2.errors import WriterError
 from rosbags.typesys import get_typestore, Stores, TypesysError
 from tqdm import tqdm
 
+from .cli import console_main, positive
 from ..evaluation.datasets import list_frames, load_frames
 from ..evaluation.metrics import error_rates, THRESHOLDS
 from ..evaluation.viz import colorize, save_png
@@ -339,12 +339,31 @@ class Runner:
 
 def run(args):
     values = load_params_file(args.params) if args.params else {}
+    convert(run_pipeline(values), values, args)
+
+
+def run_pipeline(values):
+    """
+    Return the pipeline of node parameters `values` for `convert`, its CNN loaded.
+
+    Warnings about the values go to stderr; glibc is told to return freed arrays (a
+    long-running process).
+    """
     mmap_large_arrays()
     pipeline = StereoPipeline(config_from_params(values))
     if pipeline.config.use_gcp:
         pipeline.net  # a missing weights file fails here, before any output
     for text in config_warnings(pipeline.config):
         print(f'{PROG} run: warning: {text}', file=sys.stderr)
+    return pipeline
+
+
+def convert(pipeline, values, args):
+    """
+    Write bag args.out: bag args.inp plus the outputs of `pipeline`, as `run` describes.
+
+    `values`: the node parameters (the pair sync's); args: the options of `run`.
+    """
     sync = make_sync(values)
     with open_bag(args.inp) as reader, output_bag(args.out, args.storage, args.force) as writer:
         names = check_topics(reader, args.inp, args.namespace)
@@ -488,21 +507,27 @@ def play(args):
 
 
 # ---- command line -----------------------------------------------------------------------
-def _positive(text):
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f'must be > 0, got {text}')
-    return value
+STORAGE = {'choices': ('sqlite3', 'mcap'), 'default': 'mcap',
+           'help': 'storage plugin of the output bag (default mcap)'}
+NAMESPACE = {'default': '', 'metavar': 'NS',
+             'help': 'topics under this namespace (default: none, e.g. /left/image_rect)'}
+
+
+def add_run_options(ap):
+    """Add the options of `run` that apply to any bag (all but --in, --out, --force) to `ap`."""
+    ap.add_argument('--params', type=Path, metavar='YAML',
+                    help='node parameters file, e.g. config/gcp_stereo.yaml '
+                         '(default: the node defaults)')
+    ap.add_argument('--png', type=Path, metavar='DIR',
+                    help='write colour-mapped disparity and GCP-mask PNGs here')
+    ap.add_argument('--storage', **STORAGE)
+    ap.add_argument('--namespace', **NAMESPACE)
 
 
 def parser():
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest='command', required=True)
-    storage = {'choices': ('sqlite3', 'mcap'), 'default': 'mcap',
-               'help': 'storage plugin of the output bag (default mcap)'}
-    namespace = {'default': '', 'metavar': 'NS',
-                 'help': 'topics under this namespace (default: none, e.g. /left/image_rect)'}
     force = {'action': 'store_true', 'help': 'replace an existing --out'}
 
     mk = sub.add_parser('make', help='dataset stereo pairs -> bag with the node input topics '
@@ -512,12 +537,12 @@ def parser():
                          "'motorcycle'")
     mk.add_argument('--frames', nargs='+', metavar='NAME',
                     help='frame names (default: all of the dataset)')
-    mk.add_argument('--storage', **storage)
+    mk.add_argument('--storage', **STORAGE)
     mk.add_argument('--out', required=True, type=Path, metavar='BAG',
                     help='bag to write (a directory)')
-    mk.add_argument('--rate', type=_positive, default=10.0, metavar='HZ',
+    mk.add_argument('--rate', type=positive, default=10.0, metavar='HZ',
                     help='frames per second (default 10)')
-    mk.add_argument('--namespace', **namespace)
+    mk.add_argument('--namespace', **NAMESPACE)
     mk.add_argument('--force', **force)
 
     rn = sub.add_parser('run', help='bag in -> bag out with disparity, gcp_mask, confidence, '
@@ -526,20 +551,14 @@ def parser():
                     help='bag directory, or its .mcap / .db3 file')
     rn.add_argument('--out', required=True, type=Path, metavar='BAG',
                     help='bag to write: the input plus the outputs')
-    rn.add_argument('--params', type=Path, metavar='YAML',
-                    help='node parameters file, e.g. config/gcp_stereo.yaml '
-                         '(default: the node defaults)')
-    rn.add_argument('--png', type=Path, metavar='DIR',
-                    help='write colour-mapped disparity and GCP-mask PNGs here')
-    rn.add_argument('--storage', **storage)
-    rn.add_argument('--namespace', **namespace)
+    add_run_options(rn)
     rn.add_argument('--force', **force)
 
     pl = sub.add_parser('play',
                         help='publish a bag into the live ROS graph at its recorded timing')
     pl.add_argument('--in', dest='inp', required=True, type=Path, metavar='BAG',
                     help='bag directory, or its .mcap / .db3 file')
-    pl.add_argument('--rate', type=_positive, default=1.0, metavar='R',
+    pl.add_argument('--rate', type=positive, default=1.0, metavar='R',
                     help='speed factor (default 1)')
     pl.add_argument('--loop', action='store_true',
                     help='play again and again, with the recorded stamps '
@@ -550,32 +569,15 @@ def parser():
     return ap
 
 
-class Terminated(BaseException):
-    """SIGTERM, raised like KeyboardInterrupt so that every `finally` runs."""
-
-
-def _terminate(signum, frame):
-    raise Terminated
-
-
+@console_main(PROG, errors=(WriterError, TypesysError))
 def main(argv=None):
     args = parser().parse_args(argv)
-    unwritten = f'; {args.out} not written' if args.command != 'play' else ''
-    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         {'make': make, 'run': run, 'play': play}[args.command](args)
-    except (ValueError, OSError, WriterError, TypesysError) as err:
-        print(f'{PROG} {args.command}: error: {err}{unwritten}', file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f'{PROG} {args.command}: interrupted{unwritten}', file=sys.stderr)
-        return 130
-    except Terminated:
-        print(f'{PROG} {args.command}: terminated{unwritten}', file=sys.stderr)
-        return 128 + signal.SIGTERM
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    return 0
+    except BaseException as err:
+        if args.command != 'play':
+            err.add_note(f'{args.out} not written')
+        raise
 
 
 if __name__ == '__main__':
