@@ -289,11 +289,12 @@ def test_run_skips_a_bad_pair_as_the_node_does(tmp_path, params_file, capsys):
     assert '2 pairs processed, 2 skipped' in out.out
     outputs, _ = read_bag(tmp_path / 'out')
     assert [stamp_of(m) for _, m in outputs['/disparity']] == [1, 4]
-    theta_one = tmp_path / 'theta.yaml'
-    theta_one.write_text(yaml.safe_dump({'/**': {'ros__parameters': {**PARAMS, 'theta': 1.0}}}))
+    too_high = tmp_path / 'theta.yaml'  # the shipped weights' confidence is at most 0.842
+    too_high.write_text(yaml.safe_dump({'/**': {'ros__parameters': {**PARAMS, 'theta': 0.9}}}))
     assert bag.main(['run', '--in', str(path), '--out', str(tmp_path / 'out'), '--force',
-                     '--params', str(theta_one)]) == 0
-    assert 'warning: theta 1 selects no GCP' in capsys.readouterr().err
+                     '--params', str(too_high)]) == 0
+    assert ('warning: theta 0.9 selects no GCP: the CNN confidence is at most'
+            in capsys.readouterr().err)
 
 
 def slow_bag(path, pairs):

@@ -396,7 +396,7 @@ def test_arrays_are_let_go_when_idle(harness, pair):
 
 @pytest.mark.parametrize('harness', [{'thetta': 0.5, 'use_gcp': False}], indirect=True)
 def test_misspelled_and_useless_parameters_are_reported(harness):
-    harness.set_params(use_gcp=True, theta=1.0)
+    harness.set_params(use_gcp=True, theta=0.9)
     wait_for(lambda: 'selects no GCP' in harness.log('WARN'), 'theta warning')
     assert "ignoring unknown parameter(s) 'thetta' (did you mean 'theta'?)" in harness.log('WARN')
     (result,) = harness.set_params(device='cudafoo')

@@ -36,7 +36,7 @@ class LiveParameters:
     every value is valid; the start-up values are checked the same way and raise ValueError.
     Switching `cost` brings that cost's theta, P1, P2, c_hi and c_low unless set in the
     same request. `on_sync_change(values)` is called when a sync parameter changes. Valid
-    values that cannot work (theta 1 with GCPs) are logged as warnings.
+    values that cannot work (a theta above any CNN confidence) are logged as warnings.
     """
 
     def __init__(self, node, on_sync_change):
@@ -101,5 +101,5 @@ class LiveParameters:
         return pipeline
 
     def _warn(self):
-        for text in config_warnings(self.pipeline.config):
+        for text in config_warnings(self.pipeline):
             self._node.get_logger().warn(text)

@@ -187,9 +187,20 @@ class GcpStereoNode(Node):
         return super().destroy_node()
 
 
+def _cannot_start(err):
+    """Print why the node cannot start, in one line; return the exit status."""
+    print(f'{NODE_NAME}: error: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
+          file=sys.stderr)
+    return 2
+
+
 def main(args=None):
     argv = sys.argv if args is None else args
-    extra = remove_ros_args(argv)[1:]
+    try:
+        check_params_files(argv)  # rcl would say it with a traceback
+        extra = remove_ros_args(argv)[1:]
+    except Exception as err:  # rcl's own argument errors
+        return _cannot_start(err)
     if extra and extra[0] in ('-h', '--help'):
         print(__doc__.strip())
         return 0
@@ -201,14 +212,11 @@ def main(args=None):
     node = None
     try:
         try:
-            check_params_files(argv)  # rcl would say it with a traceback
             mmap_large_arrays()
             rclpy.init(args=argv)
             node = GcpStereoNode()
         except Exception as err:  # settings that cannot work: one line, no traceback
-            print(f'{NODE_NAME}: error: cannot start: '
-                  + (' '.join(str(err).split()) or repr(err)), file=sys.stderr)
-            return 2
+            return _cannot_start(err)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or shutdown, while starting or spinning

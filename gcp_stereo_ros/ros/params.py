@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import difflib
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from .sync import PairSync
@@ -113,12 +114,17 @@ def describe_unknown(names, known):
     return ', '.join(parts)
 
 
-def config_warnings(config):
-    """Return what is wrong with a valid StereoConfig as used on a stream, as sentences."""
-    if config.use_gcp and config.theta >= 1:
-        return [f'theta {config.theta:g} selects no GCP (the CNN confidence is at most 1): '
-                'every pixel gets c_hi at every disparity and the disparity is 0 everywhere; '
-                'lower theta or set use_gcp false']
+def config_warnings(pipeline):
+    """Return what is wrong with a valid pipeline's config as used on a stream, as sentences."""
+    config = pipeline.config
+    if config.use_gcp:
+        from ..stereo.cnn import calibrated  # torch is loaded with the CNN anyway
+        top = float(calibrated(pipeline.net, np.ones(1, np.float32))[0])
+        if config.theta >= top:
+            return [f'theta {config.theta:g} selects no GCP: the CNN confidence is at most '
+                    f'{top:.3g} with these weights, so every pixel gets c_hi at every '
+                    'disparity and the disparity is 0 everywhere; lower theta or set use_gcp '
+                    'false']
     return []
 
 

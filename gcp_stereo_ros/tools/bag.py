@@ -353,7 +353,7 @@ def run_pipeline(values):
     pipeline = StereoPipeline(config_from_params(values))
     if pipeline.config.use_gcp:
         pipeline.net  # a missing weights file fails here, before any output
-    for text in config_warnings(pipeline.config):
+    for text in config_warnings(pipeline):
         print(f'{PROG} run: warning: {text}', file=sys.stderr)
     return pipeline
 
