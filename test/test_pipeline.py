@@ -168,15 +168,3 @@ def test_gcp_beats_its_baseline_on_motorcycle(motorcycle, census_baseline):
         left, right, confidence=(census_gcp.cof_c, census_gcp.cof_d, census_gcp.cof_dr))
     assert (error_rates(sad_gcp.disparity, gt)['bad3']
             < error_rates(sad.disparity, gt)['bad3'] - 2.5)
-
-
-def test_params_file_keeps_node_parameters_only(tmp_path):
-    path = tmp_path / 'p.yaml'
-    path.write_text('gcp_stereo_node:\n  ros__parameters:\n    cost: sad\n    P2: 3.0\n'
-                    '    qos_overrides:\n      /left/image_rect:\n'
-                    '        subscription:\n          depth: 2\n')
-    config = config_from_params(load_params_file(path))
-    assert (config.cost, config.p1, config.p2, config.theta) == ('sad', 1.0, 3.0, 0.55)
-    path.write_text('other_node:\n  ros__parameters: {}\n')
-    with pytest.raises(ValueError, match='ros__parameters'):
-        load_params_file(path)

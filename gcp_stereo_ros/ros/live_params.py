@@ -3,14 +3,15 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
 
-from .params import BY_NAME, config_from_params, cost_defaults, make_sync, PARAMS, SYNC_PARAMS
-from ..stereo.cost import COSTS
+from .params import BY_NAME, coerce, config_from_params, make_sync, PARAMS
 from ..stereo.pipeline import StereoPipeline
 
 
 def descriptor(param):
-    """Describe a `params.Param` for ROS: its description and range."""
+    """Describe a `params.Param` for ROS: its description, range or choices."""
     desc = ParameterDescriptor(description=param.description)
+    if param.choices:
+        desc.additional_constraints = 'one of ' + ', '.join(map(str, param.choices))
     if param.range is not None:
         low, high, step = param.range
         if isinstance(param.default, int):
@@ -21,9 +22,19 @@ def descriptor(param):
     return desc
 
 
-def config_of(values):
-    """Build the StereoConfig of ROS-named values (node-only parameters left out)."""
-    return config_from_params({n: v for n, v in values.items() if BY_NAME[n].field})
+def _declare(node, param):
+    """
+    Declare `param`, with its start-up value (`-p`, a params file) if one is given.
+
+    A whole number for a decimal parameter (`-p census.P1:=3`, `P1: 4` in a file) is an int,
+    which rclpy refuses for a double parameter at declaration: the start-up value is read
+    untyped first, then declared as the parameter's type.
+    """
+    untyped = node.declare_parameter(param.name, param.default,
+                                     ParameterDescriptor(dynamic_typing=True)).value
+    node.undeclare_parameter(param.name)
+    node.declare_parameter(param.name, coerce(param.name, untyped), descriptor(param),
+                           ignore_override=True)
 
 
 class LiveParameters:
@@ -31,35 +42,29 @@ class LiveParameters:
     Declare the node's parameters and keep `values` and `pipeline` in step with them.
 
     A request is validated whole, by building the pipeline it asks for (a missing weights
-    file is refused here, with its path), and applied only if every value is valid.
-    Switching `cost` brings that cost's theta, P1, P2, c_hi and c_low unless set in the
-    same request. `on_sync_change(values)` is called when a sync parameter changes.
+    file is refused here, with its path), and applied only if every value is valid. A
+    whole number set for a decimal parameter is taken as that decimal. No parameter changes
+    another. `on_change(names)` is called with the names whose values changed.
     """
 
-    def __init__(self, node, on_sync_change):
+    def __init__(self, node, on_change):
         self._node = node
-        self._on_sync_change = on_sync_change
-        # Cost-dependent parameters default to the chosen cost's values; overrides win.
-        cost = node.declare_parameter(
-            'cost', BY_NAME['cost'].default, descriptor(BY_NAME['cost'])).value
-        defaults = cost_defaults(cost) if cost in COSTS else {}
+        self._on_change = on_change
         for p in PARAMS:
-            if p.name != 'cost':
-                node.declare_parameter(p.name, defaults.get(p.name, p.default), descriptor(p))
+            _declare(node, p)
         self.values = {p.name: node.get_parameter(p.name).value for p in PARAMS}
-        self.pipeline = StereoPipeline(config_of(self.values))
+        self.pipeline = StereoPipeline(config_from_params(self.values))
         self._candidate = None
-        node.add_pre_set_parameters_callback(self._complete_cost_switch)
+        node.add_pre_set_parameters_callback(self._decimals)
         node.add_on_set_parameters_callback(self._validate)
         node.add_post_set_parameters_callback(self._apply)
 
-    def _complete_cost_switch(self, params):
-        names = {p.name for p in params}
-        for p in params:
-            if p.name == 'cost' and p.value != self.values['cost'] and p.value in COSTS:
-                params += [Parameter(n, value=v) for n, v in cost_defaults(p.value).items()
-                           if n not in names]
-        return params
+    @staticmethod
+    def _decimals(params):
+        return [Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+                if (p.name in BY_NAME and p.type_ == Parameter.Type.INTEGER
+                    and isinstance(BY_NAME[p.name].default, float)) else p
+                for p in params]
 
     def _validate(self, params):
         changes = {p.name: p.value for p in params if p.name in BY_NAME}  # not qos_overrides.*
@@ -68,7 +73,7 @@ class LiveParameters:
             return SetParametersResult(successful=True)
         values = {**self.values, **changes}
         try:
-            config = config_of(values)
+            config = config_from_params(values)
             make_sync(values)
             pipeline = self.pipeline.with_config(config)
             if config.use_gcp:
@@ -82,9 +87,9 @@ class LiveParameters:
         if self._candidate is None:
             return
         values, self.pipeline = self._candidate
-        sync_changed = any(values[n] != self.values[n] for n in SYNC_PARAMS)
+        changed = [n for n in values if values[n] != self.values[n]]
         self.values = values
-        if sync_changed:
-            self._on_sync_change(values)
+        if changed:
+            self._on_change(changed)
         self._node.get_logger().info('parameters: ' + ', '.join(
             f'{p.name}={p.value!r}' for p in params if p.name in BY_NAME))

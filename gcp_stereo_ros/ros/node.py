@@ -1,11 +1,14 @@
 """
-gcp_stereo_node: disparity from synchronized rectified stereo images (CNN GCPs + SGM).
+gcp_stereo_node: disparity, depth and points from a stereo pair (CNN GCPs + SGM).
 
-Follows stereo_image_proc's disparity node. Subscribes `left/image_rect`, `right/image_rect`
-(mono8, mono16, rgb8, bgr8, rgba8, bgra8) and, when present, `left/camera_info`,
-`right/camera_info`; publishes, stamped with the left header, `disparity`
-(stereo_msgs/DisparityImage), `gcp_mask` (mono8, 255 = GCP) and `confidence` (32FC1 CNN
-confidence, only while subscribed). Parameters (config/gcp_stereo.yaml) are live.
+Follows stereo_image_proc's disparity and point_cloud nodes. Subscribes `left/image_rect`,
+`right/image_rect` (mono8, mono16, rgb8, bgr8, rgba8, bgra8; `<topic>/compressed` with
+`image_transport: compressed`; `left/image_raw`, `right/image_raw` with `rectify: true`)
+and `left/camera_info`, `right/camera_info`; publishes, stamped with the left header,
+`disparity` (stereo_msgs/DisparityImage), `gcp_mask` (mono8, 255 = GCP) and, only while
+subscribed, `confidence` (32FC1 CNN confidence), `depth` (32FC1 metres, REP 118) and
+`points2` (organized sensor_msgs/PointCloud2), and /diagnostics once a second.
+Parameters (config/gcp_stereo.yaml) are live.
 
 Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
 `python -m gcp_stereo_ros.node`, each with the usual `--ros-args`.
@@ -21,24 +24,29 @@ import time
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from sensor_msgs.msg import Image, RegionOfInterest
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import Image, PointCloud2, PointField, RegionOfInterest
 from stereo_msgs.msg import DisparityImage
 
-from . import messages
+from .camera import Rectifier, stereo_model
+from .diagnostics import Diagnostics
 from .live_params import LiveParameters
-from .params import NODE_NAME
-from .rosimage import image_to_array
+from .messages import output_messages, OUTPUTS
+from .params import INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
+from .rosimage import message_to_array
 from .stereo_input import StereoInput
 from .worker import NewestWorker
-from ..stereo.images import mask_image
 
 ERROR_PERIOD = 5.0  # seconds between two logs of the same error
+ON_DEMAND = ('confidence', 'depth', 'points2')  # computed only while subscribed
 
 
 class _Types:
     Image = Image
     RegionOfInterest = RegionOfInterest
     DisparityImage = DisparityImage
+    PointCloud2 = PointCloud2
+    PointField = PointField
 
 
 def _ros_data(buffer):
@@ -52,29 +60,58 @@ class GcpStereoNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
-        self.params = LiveParameters(self, on_sync_change=lambda v: self.input.reset_sync(v))
-        self.input = StereoInput(self, self.params.values, on_pair=self._on_pair)
-        self._pub_disp = self.create_publisher(DisparityImage, 'disparity', 5)
-        self._pub_gcp = self.create_publisher(Image, 'gcp_mask', 5)
-        self._pub_conf = self.create_publisher(Image, 'confidence', 5)
+        self.params = LiveParameters(self, on_change=self._on_params)
+        self._worker = NewestWorker(self._process, name='gcp_stereo_worker',
+                                    on_idle=lambda: self.input.wake())
+        self.input = StereoInput(self, self.params.values, on_pair=self._on_pair,
+                                 idle=lambda: self._worker.idle)
+        # As image_pipeline's publishers on Jazzy: reliable, depth 1, QoS overridable.
+        qos = QoSOverridingOptions.with_default_policies()
+        types = {'disparity': DisparityImage, 'gcp_mask': Image, 'confidence': Image,
+                 'depth': Image, 'points2': PointCloud2}
+        self._pubs = {name: self.create_publisher(types[name], name, 1,
+                                                  qos_overriding_options=qos)
+                      for name in OUTPUTS}
+        self._rectifier = Rectifier()
         self._last_error = {}
+        self._warned = set()
+        self._latency = []
         self.processed = 0
         self.errors = 0
+        self.last_error = ''
+        self.weights_error = None
         self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
-        self._worker = NewestWorker(self._process, name='gcp_stereo_worker')
         pipeline = self.params.pipeline
         if pipeline.config.use_gcp:
             try:
-                pipeline.net
-            except Exception as err:  # keep serving: every pair will say why
+                self._load_weights(pipeline)
+            except Exception as err:  # keep serving: every pair and /diagnostics say why
                 self._error(f'CNN weights: {err}')
+        self.diagnostics = Diagnostics(self)
         self.get_logger().info(f'ready: {pipeline.config}')
+
+    @property
+    def stale(self):
+        """Return the number of pairs dropped because a newer one came before processing."""
+        return self._worker.stale
 
     @property
     def stats(self):
         """Images received, pairs processed, pairs dropped as stale, errors."""
-        return {'received': self.input.received, 'processed': self.processed,
-                'stale': self._worker.stale, 'errors': self.errors}
+        return {'received': sum(self.input.received.values()), 'processed': self.processed,
+                'stale': self.stale, 'errors': self.errors}
+
+    def take_latencies(self):
+        """Return and forget the seconds from stamp to publish of the pairs since last call."""
+        latency, self._latency = self._latency, []
+        return latency
+
+    def _on_params(self, names):
+        values = self.params.values
+        if any(n in INPUT_PARAMS for n in names):
+            self.input.subscribe(values)
+        elif any(n in SYNC_PARAMS for n in names):
+            self.input.reset_sync(values)
 
     def _on_pair(self, stamp, left_msg, right_msg):
         self._worker.put((stamp, left_msg, right_msg))
@@ -82,41 +119,75 @@ class GcpStereoNode(Node):
     def _error(self, text):
         """Log an error at most once per ERROR_PERIOD for the same text."""
         self.errors += 1
+        self.last_error = text
         now = time.monotonic()
         if now - self._last_error.get(text, -ERROR_PERIOD) >= ERROR_PERIOD:
             self._last_error[text] = now
             self.get_logger().error(text)
 
+    def _warn_once(self, text):
+        if text not in self._warned:
+            self._warned.add(text)
+            self.get_logger().warn(text)
+
+    def _load_weights(self, pipeline):
+        try:
+            pipeline.net
+        except Exception as err:
+            self.weights_error = str(err)
+            raise
+        self.weights_error = None
+
+    def _image(self, side, msg, topic, info, rectify):
+        image = message_to_array(msg, topic)
+        if not rectify:
+            return image
+        try:
+            return self._rectifier(side, info, image)
+        except ValueError as err:
+            raise ValueError(f'{topic}: {err}') from None
+
     def _process(self, stamp, left_msg, right_msg):
         pipeline = self.params.pipeline
+        values = self.params.values
         topics = self.input.topics()
+        info = dict(self.input.info)
         try:
-            left = image_to_array(left_msg, topics['left'])
-            right = image_to_array(right_msg, topics['right'])
+            if pipeline.config.use_gcp:
+                self._load_weights(pipeline)
+            left, right = (self._image(side, msg, topics[side], info[side], values['rectify'])
+                           for side, msg in (('left', left_msg), ('right', right_msg)))
             result = pipeline(left, right)
         except Exception as err:  # bad input or weights: say why, keep serving
             self._error(f'skipping pair {topics["left"]} + {topics["right"]} '
                         f'at stamp {stamp} ns: {err}')
             return
         try:
-            self._publish(left_msg.header, result, pipeline.config)
+            self._publish(left_msg.header, result, pipeline.config, info, left, topics, values)
         except Exception:
             if self.context.ok():
                 raise
             return  # shutting down (Ctrl-C) while this pair was in flight: nothing to send to
+        self._latency.append((self.get_clock().now().nanoseconds - stamp) / 1e9)
         self.processed += 1
         self._log_progress(result.seconds)
 
-    def _publish(self, header, result, config):
-        geom = messages.geometry(self.input.info['left'], self.input.info['right'])
-        self._pub_disp.publish(messages.disparity_message(
-            _Types, header, result.disparity, config, geom, _ros_data))
-        if result.gcp is not None:
-            self._pub_gcp.publish(messages.image_message(
-                _Types, header, mask_image(result.gcp), 'mono8', _ros_data))
-            if self._pub_conf.get_subscription_count() > 0:
-                self._pub_conf.publish(messages.image_message(
-                    _Types, header, result.cof_c, '32FC1', _ros_data))
+    def _publish(self, header, result, config, info, left, topics, values):
+        wanted = {'disparity', 'gcp_mask'} | {
+            n for n in ON_DEMAND if self._pubs[n].get_subscription_count() > 0}
+        try:
+            model = stereo_model(info['left'], info['right'], left.shape)
+        except ValueError as err:
+            model = None
+            if wanted & {'depth', 'points2'}:
+                self._warn_once(f'no depth or points2: {err}')
+        if not header.frame_id:
+            self._warn_once(f'{topics["left"]}: empty frame_id; outputs carry it as they are')
+        msgs = output_messages(_Types, header, wanted, result, config, model, left,
+                               values['use_color'], not values['avoid_point_cloud_padding'],
+                               _ros_data)
+        for name, msg in msgs.items():
+            self._pubs[name].publish(msg)
 
     def _log_progress(self, seconds):
         w = self._window
@@ -125,16 +196,16 @@ class GcpStereoNode(Node):
         n = self.params.values['log_every_n_frames']
         if n and self.processed % n == 0:
             elapsed = time.monotonic() - w['start']
-            pairs_in = (self.input.received - w['received']) / 2 / elapsed
+            received = sum(self.input.received.values())
+            pairs_in = (received - w['received']) / 2 / elapsed
             stages = ', '.join(f'{k} {1000 * v / n:.0f}' for k, v in w['seconds'].items())
             sync = self.input.sync
             self.get_logger().info(
                 f'{self.processed} pairs processed; last {n}: ms per stage {stages}; '
-                f'input {pairs_in:.1f} pairs/s; dropped stale {self._worker.stale}, '
+                f'input taken {pairs_in:.1f} pairs/s; dropped stale {self.stale}, '
                 f'unmatched left {sync.dropped_left} right {sync.dropped_right}, '
                 f'errors {self.errors}')
-            self._window = {'start': time.monotonic(), 'received': self.input.received,
-                            'seconds': {}}
+            self._window = {'start': time.monotonic(), 'received': received, 'seconds': {}}
 
     def destroy_node(self):
         self._worker.stop()

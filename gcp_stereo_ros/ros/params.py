@@ -1,8 +1,13 @@
 """
 The node's parameters, ROS-free: names, descriptions, ranges and their StereoConfig fields.
 
-The node declares them; `gcp-stereo-bag run --params` reads the same YAML file, so a bag is
-processed exactly as the live node would.
+The node declares them; `gcp-stereo-bag run --params` reads the same YAML file (a shipped
+config, or what `ros2 param dump` wrote), so a bag is processed exactly as the live node would.
+
+Each matching cost has its own window, theta, P1, P2, c_hi and c_low (`census.P2`, ...):
+switching `cost` changes no other parameter, so parameters can be set in any order (as
+`ros2 param load` does, alphabetically) and `ros2 param dump` then `load` restores exactly
+what was dumped.
 """
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,9 +15,12 @@ from pathlib import Path
 import yaml
 
 from .sync import PairSync
+from ..stereo.cost import COSTS
 from ..stereo.pipeline import COST_DEFAULTS, StereoConfig
 
 NODE_NAME = 'gcp_stereo_node'
+# Parameters every rclpy node declares (a dump holds them); the bag tools leave them out.
+RCLPY_PARAMS = ('use_sim_time', 'start_type_description_service')
 
 
 @dataclass(frozen=True)
@@ -20,32 +28,44 @@ class Param:
     name: str
     default: object
     description: str
-    field: str | None = None  # StereoConfig field; None = node-only (sync, logging)
+    field: str | None = None  # StereoConfig field; None = node-only (input, sync, outputs)
     # (low, high, step) for numbers; step 0 = continuous
     range: tuple | None = None  # noqa: A003 (read elsewhere as p.range, so keep the name)
+    choices: tuple | None = None  # the only values allowed (said in the descriptor)
+    cost: str | None = None  # the matching cost this value belongs to (None = any)
+
+
+def _cost_params(cost):
+    d = COST_DEFAULTS[cost]
+    top = 11 if cost == 'census' else 31  # census bits fit two uint64 words
+    return (
+        Param(f'{cost}.window', _D.window, f'{cost}: matching window size in pixels (odd)',
+              'window', (3, top, 2), cost=cost),
+        Param(f'{cost}.theta', d['theta'], f'{cost}: GCP threshold on the CNN confidence',
+              'theta', (0.0, 1.0, 0.0), cost=cost),
+        Param(f'{cost}.P1', d['p1'], f'{cost}: SGM penalty for a 1 px disparity change',
+              'p1', (0.0, 10000.0, 0.0), cost=cost),
+        Param(f'{cost}.P2', d['p2'], f'{cost}: SGM penalty for larger disparity jumps (>= P1)',
+              'p2', (0.0, 10000.0, 0.0), cost=cost),
+        Param(f'{cost}.c_hi', d['c_hi'], f'{cost}: cost given to every disparity of a non-GCP '
+              'pixel', 'c_hi', (0.0, 10000.0, 0.0), cost=cost),
+        Param(f'{cost}.c_low', d['c_low'], f'{cost}: cost given to a GCP at its CNN disparity '
+              '(<= c_hi)', 'c_low', (0.0, 10000.0, 0.0), cost=cost),
+    )
 
 
 _D = StereoConfig()
 PARAMS = (
     Param('cost', _D.cost,
-          "matching cost: 'census' or 'sad' (a switch loads that cost's defaults for theta, "
-          'P1, P2, c_hi, c_low unless set in the same atomic request)', 'cost'),
-    Param('window', _D.window, 'matching window size in pixels (odd; census at most 11)',
-          'window', (3, 31, 2)),
+          "matching cost: 'census' or 'sad'; each has its own window, theta, P1, P2, c_hi, "
+          'c_low (census.*, sad.*), which a switch leaves as they are', 'cost', choices=COSTS),
     Param('max_disparity', _D.max_disp, 'number of disparities searched: 0 .. max_disparity - 1',
           'max_disp', (1, 1024, 1)),
-    Param('P1', _D.p1, 'SGM penalty for a 1 px disparity change', 'p1', (0.0, 10000.0, 0.0)),
-    Param('P2', _D.p2, 'SGM penalty for larger disparity jumps (>= P1)',
-          'p2', (0.0, 10000.0, 0.0)),
-    Param('paths', _D.paths, 'SGM path directions: 4, 8 or 16', 'paths', (4, 16, 4)),
+    *_cost_params('census'),
+    *_cost_params('sad'),
+    Param('paths', _D.paths, 'SGM path directions: 4, 8 or 16', 'paths', choices=(4, 8, 16)),
     Param('use_gcp', _D.use_gcp, 'refine the cost volume with CNN ground control points',
           'use_gcp'),
-    Param('theta', _D.theta, 'GCP threshold on the CNN confidence in [0, 1]',
-          'theta', (0.0, 1.0, 0.0)),
-    Param('c_hi', _D.c_hi, 'cost given to every disparity of a non-GCP pixel',
-          'c_hi', (0.0, 10000.0, 0.0)),
-    Param('c_low', _D.c_low, 'cost given to a GCP at its CNN disparity (<= c_hi)',
-          'c_low', (0.0, 10000.0, 0.0)),
     Param('gcp_lr_check', _D.gcp_lr_check,
           "GCPs only where the right view's CNN disparity agrees within 1 px", 'gcp_lr_check'),
     Param('weights', _D.weights,
@@ -55,41 +75,80 @@ PARAMS = (
           'bf16'),
     Param('subpixel', _D.subpixel, 'parabola fit for sub-pixel disparities', 'subpixel'),
     Param('lr_check', _D.lr_check,
-          'left-right consistency check (invalid pixels published as -1)', 'lr_check'),
+          'left-right consistency check (invalid pixels published as min_disparity - 1)',
+          'lr_check'),
     Param('median', _D.median, '3x3 median filter on the disparity', 'median'),
+    Param('image_transport', 'raw',
+          "input images: 'raw' (sensor_msgs/Image) or 'compressed' (sensor_msgs/"
+          'CompressedImage, jpeg or png, on <image topic>/compressed)',
+          choices=('raw', 'compressed')),
+    Param('rectify', False,
+          'subscribe left/image_raw, right/image_raw and rectify them with the camera_info '
+          'K, D, R, P (false: left/image_rect, right/image_rect are rectified already)'),
     Param('approximate_sync', False,
           'pair left/right images whose stamps differ by at most the tolerance'),
     Param('approximate_sync_tolerance_seconds', 0.0,
           'largest stamp difference of an approximate pair', range=(0.0, 10.0, 0.0)),
     Param('queue_size', 5, 'images kept per side while waiting for the twin', range=(1, 1000, 1)),
+    Param('use_color', True, "points2 carries the left image's colour in an rgb field"),
+    Param('avoid_point_cloud_padding', False,
+          'points2 without alignment padding: 16 bytes a point with rgb, 12 without '
+          '(padded: 32 and 16)'),
     Param('log_every_n_frames', 30,
           'log stage timings, input rate and drops every N frames (0 = never)',
           range=(0, 100000, 1)),
 )
 BY_NAME = {p.name: p for p in PARAMS}
-COST_PARAMS = {'theta': 'theta', 'P1': 'p1', 'P2': 'p2', 'c_hi': 'c_hi', 'c_low': 'c_low'}
 SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds')
+INPUT_PARAMS = ('image_transport', 'rectify')
 
 
-def cost_defaults(cost):
-    """ROS-named defaults that follow the matching cost."""
-    if cost not in COST_DEFAULTS:
-        raise ValueError(f"cost must be 'census' or 'sad', got {cost!r}")
-    return {name: COST_DEFAULTS[cost][field] for name, field in COST_PARAMS.items()}
+def check_names(names, where=''):
+    """Raise ValueError naming the parameters in `names` the node does not have."""
+    unknown = sorted(set(names) - set(BY_NAME))
+    if unknown:
+        per_cost = sorted({n for n in unknown if f'census.{n}' in BY_NAME})
+        hint = (f' ({", ".join(per_cost)}: each cost has its own, e.g. census.{per_cost[0]}, '
+                f'sad.{per_cost[0]})' if per_cost else '')
+        raise ValueError(f'{where}unknown parameter(s) {unknown}{hint}; known: {sorted(BY_NAME)}')
+
+
+def coerce(name, value):
+    """
+    Return `value` as parameter `name` takes it: a whole number for a decimal one as float.
+
+    YAML `P1: 4`, `-p census.P1:=300` and `ros2 param set ... census.P1 300` give integers.
+    Raises ValueError for a value of the wrong type or not among the parameter's choices.
+    """
+    p = BY_NAME[name]
+    if isinstance(p.default, float) and type(value) is int:
+        value = float(value)
+    if type(value) is not type(p.default):
+        raise ValueError(f'{name} takes a {type(p.default).__name__} value, got {value!r}')
+    if p.choices and value not in p.choices:
+        raise ValueError(f'{name} must be one of {", ".join(map(repr, p.choices))}, '
+                         f'got {value!r}')
+    return value
 
 
 def config_from_params(values):
     """
-    Build the StereoConfig from ROS-named parameter values.
+    Build the StereoConfig of the chosen `cost` from ROS-named parameter values.
 
-    Cost-dependent ones that are missing take the chosen cost's defaults. Raises ValueError
-    for unknown names or invalid values.
+    Missing values take their defaults. Both costs' values are checked, so that switching
+    `cost` can never fail. Raises ValueError for unknown names or invalid values.
     """
-    unknown = set(values) - set(BY_NAME)
-    if unknown:
-        raise ValueError(f'unknown parameter(s) {sorted(unknown)}; known: {sorted(BY_NAME)}')
-    fields = {BY_NAME[n].field: v for n, v in values.items() if BY_NAME[n].field and n != 'cost'}
-    return StereoConfig.for_cost(values.get('cost', _D.cost), **fields)
+    check_names(values)
+    values = {n: coerce(n, v) for n, v in values.items()}
+    configs = {}
+    for cost in COSTS:
+        fields = {BY_NAME[n].field: v for n, v in values.items()
+                  if BY_NAME[n].field and n != 'cost' and BY_NAME[n].cost in (None, cost)}
+        try:
+            configs[cost] = StereoConfig.for_cost(cost, **fields)
+        except ValueError as err:
+            raise ValueError(f'{cost}: {err}') from None
+    return configs[values.get('cost', _D.cost)]
 
 
 def make_sync(values):
@@ -97,22 +156,55 @@ def make_sync(values):
     return PairSync(*(values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS))
 
 
-def load_params_file(path):
-    """
-    Return the parameter values from a ROS params YAML.
+def _flatten(params, prefix=''):
+    """Flatten nested parameter dicts into dotted names, as rclpy reads a params file."""
+    flat = {}
+    for key, value in params.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f'{prefix}{key}.'))
+        else:
+            flat[f'{prefix}{key}'] = value
+    return flat
 
-    The file has the form `<node or /**>: ros__parameters: {...}`; `qos_overrides`, which
-    only rclpy reads, is left out.
+
+def load_params_file(path, node_name=NODE_NAME):
+    """
+    Return the parameter values a ROS params YAML gives the node.
+
+    The entries are those keyed `/**` (or any wildcard) and those for `node_name` in any
+    namespace (`node_name`, `/ns/node_name`, `/**/node_name`), wildcards first, merged in
+    that order as rcl does; a file with a single entry (what `ros2 param dump` writes, for
+    any node name) is taken whatever its key. Nested names are flattened (`census: {P1: 4}`
+    -> `census.P1`); rclpy's own parameters (`use_sim_time`, `start_type_description_service`,
+    `qos_overrides`) are left out, and whole numbers for decimal parameters become floats.
+    Raises ValueError for an unreadable file, no entry for the node, unknown parameters
+    or values of the wrong type.
     """
     path = Path(path)
     try:
         doc = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as err:
         raise ValueError(f'cannot read parameters file {path}: {err}') from err
-    for key in (NODE_NAME, '/' + NODE_NAME, '/**'):
-        if (isinstance(doc, dict) and isinstance(doc.get(key), dict)
-                and 'ros__parameters' in doc[key]):
-            values = dict(doc[key]['ros__parameters'])
-            values.pop('qos_overrides', None)  # rclpy's QoS settings, not pipeline parameters
-            return values
-    raise ValueError(f'{path}: expected "{NODE_NAME}:" or "/**:" with "ros__parameters:" inside')
+    entries = {key: body['ros__parameters'] for key, body in (doc or {}).items()
+               if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict)
+               } if isinstance(doc, dict) else {}
+    last = {key: str(key).rstrip('/').rsplit('/', 1)[-1] for key in entries}
+    wild = [key for key in entries if last[key] in ('*', '**')]
+    named = [key for key in entries if last[key] == node_name]
+    keys = wild + named
+    if not keys and len(entries) == 1:
+        keys = list(entries)
+    if not keys:
+        found = ', '.join(map(str, entries)) or 'none'
+        raise ValueError(f'{path}: no parameters for {node_name} (expected "/**:" or '
+                         f'"{node_name}:" with "ros__parameters:" inside; entries: {found})')
+    values = {}
+    for key in keys:
+        values.update(_flatten(entries[key]))
+    values = {n: v for n, v in values.items()
+              if n not in RCLPY_PARAMS and not n.startswith('qos_overrides.')}
+    check_names(values, f'{path}: ')
+    try:
+        return {n: coerce(n, v) for n, v in values.items()}
+    except ValueError as err:
+        raise ValueError(f'{path}: {err}') from None
