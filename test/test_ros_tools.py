@@ -325,3 +325,17 @@ def test_launch_file(colcon_install, monkeypatch):
         fake['LaunchConfiguration']('params_file'),
         {'use_sim_time': fake['ParameterValue'](fake['LaunchConfiguration']('use_sim_time'),
                                                 value_type=bool)}]
+
+
+def test_a_start_up_value_for_an_unknown_name_stops_the_node(tmp_path):
+    """`-p theta:=0.7` (a flat name of before) or a typo must not be ignored silently."""
+    params = tmp_path / 'old.yaml'
+    params.write_text('/**:\n  ros__parameters:\n    theta: 0.7\n')
+    hint = "['theta'] (theta: each cost has its own, e.g. census.theta, sad.theta)"
+    for args, says in ((['-p', 'theta:=0.7'], hint), (['--params-file', str(params)], hint),
+                       (['-p', 'censu.P1:=3.0'], "['censu.P1']; known: ")):
+        proc = subprocess.run([sys.executable, '-m', 'gcp_stereo_ros.node', '--ros-args', *args],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2, proc.stderr
+        line, = proc.stderr.strip().splitlines()
+        assert line.startswith('gcp_stereo_node: cannot start: unknown parameter(s) ' + says), line

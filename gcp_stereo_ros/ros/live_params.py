@@ -3,7 +3,8 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
 
-from .params import BY_NAME, coerce, config_from_params, make_sync, PARAMS
+from .params import (BY_NAME, check_names, coerce, config_from_params, make_sync, PARAMS,
+                     RCLPY_PARAMS)
 from ..stereo.pipeline import StereoPipeline
 
 
@@ -24,16 +25,17 @@ def descriptor(param):
 
 def _declare(node, param):
     """
-    Declare `param`, with its start-up value (`-p`, a params file) if one is given.
+    Declare `param` with the start-up value given for it (`-p`, a params file), if any.
 
-    A whole number for a decimal parameter (`-p census.P1:=3`, `P1: 4` in a file) is an int,
-    which rclpy refuses for a double parameter at declaration: the start-up value is read
-    untyped first, then declared as the parameter's type.
+    The node has declared every start-up value as it came (untyped), so that none goes
+    unnoticed; a whole number for a decimal parameter (`-p census.P1:=3`, `P1: 4` in a file),
+    which rclpy refuses for a double, is read here and declared as the parameter's type.
     """
-    untyped = node.declare_parameter(param.name, param.default,
-                                     ParameterDescriptor(dynamic_typing=True)).value
-    node.undeclare_parameter(param.name)
-    node.declare_parameter(param.name, coerce(param.name, untyped), descriptor(param),
+    value = param.default
+    if node.has_parameter(param.name):
+        value = node.get_parameter(param.name).value
+        node.undeclare_parameter(param.name)
+    node.declare_parameter(param.name, coerce(param.name, value), descriptor(param),
                            ignore_override=True)
 
 
@@ -41,17 +43,23 @@ class LiveParameters:
     """
     Declare the node's parameters and keep `values` and `pipeline` in step with them.
 
-    A request is validated whole, by building the pipeline it asks for (a missing weights
-    file is refused here, with its path), and applied only if every value is valid. A
-    whole number set for a decimal parameter is taken as that decimal. No parameter changes
-    another. `on_change(names)` is called with the names whose values changed.
+    A start-up value for a name the node does not have is refused (ValueError). A request
+    is validated whole, by building the pipeline it asks for (a missing weights file is
+    refused here, with its path), and applied only if every value is valid. A whole number
+    set for a decimal parameter is taken as that decimal. No parameter changes another.
+    `on_change(names)` is called with the names whose values changed.
     """
 
     def __init__(self, node, on_change):
         self._node = node
         self._on_change = on_change
+        for name in node.list_parameters([], 0).names:
+            if name.startswith('qos_overrides.'):  # declared read-only with their topic
+                node.undeclare_parameter(name)
         for p in PARAMS:
             _declare(node, p)
+        check_names(n for n in node.list_parameters([], 0).names  # a misspelled start-up name
+                    if n not in RCLPY_PARAMS and not n.startswith('qos_overrides.'))
         self.values = {p.name: node.get_parameter(p.name).value for p in PARAMS}
         self.pipeline = StereoPipeline(config_from_params(self.values))
         self._candidate = None

@@ -59,7 +59,9 @@ def _ros_data(buffer):
 class GcpStereoNode(Node):
 
     def __init__(self, **kwargs):
-        super().__init__(NODE_NAME, **kwargs)
+        # Every start-up value is declared, so LiveParameters sees (and refuses) unknown names.
+        super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True,
+                         **kwargs)
         self.params = LiveParameters(self, on_change=self._on_params)
         self._worker = NewestWorker(self._process, name='gcp_stereo_worker',
                                     on_idle=lambda: self.input.wake())
