@@ -57,7 +57,7 @@ def test_rectifier_models_and_refusals():
                                                  cv2.CV_16SC2)
     np.testing.assert_array_equal(rectify('left', fisheye, image),
                                   cv2.remap(image, m1, m2, cv2.INTER_LINEAR))
-    for bad, reason in ((None, 'no left camera_info received: cannot rectify'),
+    for bad, reason in ((None, '^image: no left camera_info received: cannot rectify'),
                         (info(distortion_model='fov'), "distortion model 'fov' is not supported"),
                         (info(d=[0.1, 0.2, 0.3]), '3 D coefficients for plumb_bob'),
                         (info(binning_x=2), 'binning'),

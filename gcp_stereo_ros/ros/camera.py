@@ -108,16 +108,19 @@ class Rectifier:
     def __init__(self):
         self._maps = {}  # side -> (calibration key, map1, map2)
 
-    def __call__(self, side, info, image):
-        """Return `image` of `side` rectified; ValueError if `info` cannot rectify it."""
-        if info is None:
-            raise ValueError(f'no {side} camera_info received: cannot rectify')
+    def __call__(self, side, info, image, topic='image'):
+        """Return `image` of `side` rectified; ValueError naming `topic` if `info` cannot."""
         h, w = image.shape[:2]
-        key = (w, h, info.width, info.height, info.distortion_model, tuple(info.d),
-               tuple(info.k), tuple(info.r), tuple(info.p), info.binning_x, info.binning_y,
-               (info.roi.x_offset, info.roi.y_offset, info.roi.width, info.roi.height))
-        if self._maps.get(side, (None,))[0] != key:
-            self._maps[side] = (key, *_rectify_maps(side, info, w, h))
+        try:
+            if info is None:
+                raise ValueError(f'no {side} camera_info received: cannot rectify')
+            key = (w, h, info.width, info.height, info.distortion_model, tuple(info.d),
+                   tuple(info.k), tuple(info.r), tuple(info.p), info.binning_x, info.binning_y,
+                   (info.roi.x_offset, info.roi.y_offset, info.roi.width, info.roi.height))
+            if self._maps.get(side, (None,))[0] != key:
+                self._maps[side] = (key, *_rectify_maps(side, info, w, h))
+        except ValueError as err:
+            raise ValueError(f'{topic}: {err}') from None
         _, map1, map2 = self._maps[side]
         return cv2.remap(image, map1, map2, cv2.INTER_LINEAR)
 

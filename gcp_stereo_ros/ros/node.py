@@ -140,15 +140,6 @@ class GcpStereoNode(Node):
             raise
         self.weights_error = None
 
-    def _image(self, side, msg, topic, info, rectify):
-        image = message_to_array(msg, topic)
-        if not rectify:
-            return image
-        try:
-            return self._rectifier(side, info, image)
-        except ValueError as err:
-            raise ValueError(f'{topic}: {err}') from None
-
     def _process(self, stamp, left_msg, right_msg):
         pipeline = self.params.pipeline
         values = self.params.values
@@ -157,8 +148,11 @@ class GcpStereoNode(Node):
         try:
             if pipeline.config.use_gcp:
                 self._load_weights(pipeline)
-            left, right = (self._image(side, msg, topics[side], info[side], values['rectify'])
+            left, right = (message_to_array(msg, topics[side])
                            for side, msg in (('left', left_msg), ('right', right_msg)))
+            if values['rectify']:
+                left, right = (self._rectifier(side, info[side], image, topics[side])
+                               for side, image in (('left', left), ('right', right)))
             result = pipeline(left, right)
         except Exception as err:  # bad input or weights: say why, keep serving
             self._error(f'skipping pair {topics["left"]} + {topics["right"]} '

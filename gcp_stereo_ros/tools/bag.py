@@ -343,14 +343,10 @@ class Runner:
                 self.process(*pair, timestamp)
 
     def image(self, side, msg):
-        topic = self.topics[side]
-        image = message_to_array(msg, topic)
-        if not self.rectify:
-            return image
-        try:
-            return self.rectifier(side, self.info[side], image)
-        except ValueError as err:
-            raise ValueError(f'{topic}: {err}') from None
+        image = message_to_array(msg, self.topics[side])
+        if self.rectify:
+            return self.rectifier(side, self.info[side], image, self.topics[side])
+        return image
 
     def process(self, stamp, left_msg, right_msg, timestamp):
         config = self.pipeline.config
