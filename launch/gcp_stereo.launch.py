@@ -1,5 +1,5 @@
 """
-Launch gcp_stereo_node with the paper's parameters and the large-image Fast DDS profile.
+Launch gcp_stereo_node with its default parameters and the large-image Fast DDS profile.
 
     ros2 launch gcp_stereo_ros gcp_stereo.launch.py namespace:=stereo
     ros2 launch gcp_stereo_ros gcp_stereo.launch.py --show-args
@@ -28,8 +28,8 @@ def generate_launch_description():
             description='namespace of the node and its topics, e.g. stereo'),
         DeclareLaunchArgument(
             'params_file', default_value=os.path.join(share, 'config', 'gcp_stereo.yaml'),
-            description='parameters file of the node (config/gcp_stereo_tuned.yaml holds the '
-                        'cross-validated values)'),
+            description='parameters file of the node (config/gcp_stereo_paper.yaml holds the '
+                        "paper's values)"),
         DeclareLaunchArgument(
             'use_sim_time', default_value='false', choices=['true', 'false'],
             description='use the /clock topic (e.g. of a bag played with --clock) as time'),

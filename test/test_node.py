@@ -145,7 +145,7 @@ def ros():
 
 @pytest.fixture
 def harness(ros, request, capfd):
-    overrides = {'max_disparity': MAX_DISP, 'census.theta': 0.9, **getattr(request, 'param', {})}
+    overrides = {'max_disparity': MAX_DISP, **getattr(request, 'param', {})}
     h = Harness(overrides, capfd)
     h.overrides = overrides
     yield h
@@ -235,11 +235,10 @@ def test_exact_and_approximate_sync(harness, pair):
 
 def test_set_parameters_live(harness, pair):
     left, right = pair
-    ok = harness.set_params({'census.theta': 0.95, 'census.P1': 6.0, 'census.P2': 100.0,
+    ok = harness.set_params({'census.theta': 0.6, 'census.P1': 6.0, 'census.P2': 100.0,
                              'paths': 8})
     assert all(r.successful for r in ok)
     for values, reason in [
-        ({'census.P2': 2.0}, 'P2'),
         ({'paths': 12}, 'paths'),
         ({'census.theta': 1.5}, 'theta'),
         ({'cost': 'ncc'}, 'cost'),
@@ -247,14 +246,18 @@ def test_set_parameters_live(harness, pair):
         ({'census.window': 10}, 'window'),
         ({'census.window': 13}, 'census.window'),
         ({'image_transport': 'theora'}, 'image_transport'),
+        ({'bf16': 'maybe'}, 'bf16'),
     ]:
         (result,) = harness.set_params(values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
-    assert harness.node.get_parameter('census.theta').value == 0.95
+    assert harness.node.get_parameter('census.theta').value == 0.6
+    for bf16 in (True, 'auto', False):  # true, false or 'auto': one parameter, two types
+        assert all(r.successful for r in harness.set_params({'bf16': bf16}))
+        assert harness.node.params.pipeline.config.bf16 == bf16
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity after set')
-    overrides = {**harness.overrides, 'census.theta': 0.95, 'census.P1': 6.0,
-                 'census.P2': 100.0, 'paths': 8}
+    overrides = {**harness.overrides, 'census.theta': 0.6, 'census.P1': 6.0,
+                 'census.P2': 100.0, 'paths': 8, 'bf16': False}
     want, result = expected(overrides, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
     np.testing.assert_array_equal(image_to_array(harness.gcp[-1]),
@@ -264,14 +267,25 @@ def test_set_parameters_live(harness, pair):
     assert all(r.successful for r in harness.set_params({'sad.P2': 20.0, 'cost': 'sad'}))
     names = ('theta', 'P1', 'P2', 'c_hi', 'c_low')
     assert {n: harness.node.get_parameter(f'census.{n}').value for n in names} == {
-        'theta': 0.95, 'P1': 6.0, 'P2': 100.0, 'c_hi': 200.0, 'c_low': 1.3}
+        'theta': 0.6, 'P1': 6.0, 'P2': 100.0, 'c_hi': 200.0, 'c_low': 10.0}
     assert {n: harness.node.get_parameter(f'sad.{n}').value for n in names} == {
-        'theta': 0.55, 'P1': 1.0, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
+        'theta': 0.3, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
     harness.send_pair(left, right, 'rgb8', 8_000_000_000)
     wait_for(lambda: stamp_of(harness.disparity[-1]) == 8_000_000_000,
              'disparity after cost switch')
     want, _ = expected({**overrides, 'cost': 'sad', 'sad.P2': 20.0}, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
+
+    # Values that cross (as `ros2 param load` sets P1 before P2) are taken and wait.
+    assert all(r.successful for r in harness.set_params({'sad.P1': 30.0}))
+    assert harness.node.params.pipeline.config.p1 == 0.02  # the last consistent values
+    assert harness.node.params.pending == ['sad: P2 (20.0) must be >= P1 (30.0)']
+    assert any('waiting for that, the node keeps its last consistent values' in m
+               for m in harness.error_logs('WARN'))
+    assert harness.node.get_parameter('sad.P1').value == 30.0
+    assert all(r.successful for r in harness.set_params({'sad.P2': 40.0}))
+    config = harness.node.params.pipeline.config
+    assert (config.p1, config.p2, harness.node.params.pending) == (30.0, 40.0, [])
 
 
 def test_bad_input_is_logged_and_survived(harness, pair):

@@ -2,6 +2,7 @@
 from pathlib import Path
 
 from gcp_stereo_ros.ros.params import config_from_params, load_params_file
+from gcp_stereo_ros.stereo.pipeline import StereoConfig
 import pytest
 import yaml
 
@@ -15,24 +16,23 @@ def write(tmp_path, doc):
 
 
 def test_shipped_files_apply_to_any_node_name_and_hold_both_costs():
-    for name in ('gcp_stereo.yaml', 'gcp_stereo_tuned.yaml'):
+    for name, preset in (('gcp_stereo.yaml', 'default'), ('gcp_stereo_paper.yaml', 'paper')):
         doc = yaml.safe_load((REPO / 'config' / name).read_text())
         assert list(doc) == ['/**'], name  # any name, any namespace: rcl's wildcard
-    tuned = load_params_file(REPO / 'config' / 'gcp_stereo_tuned.yaml')
-    census = config_from_params(tuned)
-    sad = config_from_params({**tuned, 'cost': 'sad'})
-    assert (census.theta, census.p2, census.c_low, census.gcp_lr_check) == (0.5, 64.0, 10.0, True)
-    assert (sad.theta, sad.p1, sad.p2, sad.c_low) == (0.9, 0.05, 0.5, 0.001)
+        values = load_params_file(REPO / 'config' / name)
+        for cost in ('census', 'sad'):
+            assert (config_from_params({**values, 'cost': cost})
+                    == StereoConfig.for_cost(cost, preset)), (name, cost)
 
 
 def test_a_ros2_param_dump_file_is_read(tmp_path):
     """What `ros2 param dump /stereo/gcp_stereo_node` prints: a namespaced key, nested names."""
     path = write(tmp_path, {'/stereo/gcp_stereo_node': {'ros__parameters': {
-        'cost': 'sad', 'census': {'P2': 64.0}, 'sad': {'P1': 2},
+        'cost': 'sad', 'census': {'P2': 64.0}, 'sad': {'P1': 2, 'P2': 14.0},
         'qos_overrides': {'/stereo/left/image_rect': {'subscription': {'depth': 1}}},
         'start_type_description_service': True, 'use_sim_time': False}}})
     values = load_params_file(path)
-    assert values == {'cost': 'sad', 'census.P2': 64.0, 'sad.P1': 2.0}
+    assert values == {'cost': 'sad', 'census.P2': 64.0, 'sad.P1': 2.0, 'sad.P2': 14.0}
     assert type(values['sad.P1']) is float  # a whole number for a decimal parameter
     config = config_from_params(values)
     assert (config.cost, config.p1, config.p2) == ('sad', 2.0, 14.0)
@@ -69,7 +69,7 @@ def test_bad_files_are_refused_with_the_reason(tmp_path, doc, reason):
 
 
 def test_both_costs_are_checked_whichever_is_chosen():
-    with pytest.raises(ValueError, match=r'sad: P2 \(0\.5\) must be >= P1 \(1\.0\)'):
-        config_from_params({'cost': 'census', 'sad.P2': 0.5})
+    with pytest.raises(ValueError, match=r'sad: P2 \(0\.01\) must be >= P1 \(0\.02\)'):
+        config_from_params({'cost': 'census', 'sad.P2': 0.01})
     config = config_from_params({'cost': 'census', 'sad.P2': 20.0, 'census.P2': 30.0})
     assert config.p2 == 30.0

@@ -34,7 +34,7 @@ from rclpy.parameter_client import AsyncParameterClient
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-TUNED = REPO / 'config' / 'gcp_stereo_tuned.yaml'
+PAPER = REPO / 'config' / 'gcp_stereo_paper.yaml'
 QUICK = ['-p', 'use_gcp:=false', '-p', 'max_disparity:=16']  # no CNN: quick to start
 
 
@@ -117,25 +117,30 @@ def graph():
                                    ['-r', '__ns:=/car/front', '-r', '__node:=stereo']])
 def test_shipped_params_file_applies_under_any_name(graph, remap):
     """`namespace:=stereo` in the launch file, `-r __ns:=`, `-r __node:=` (rcl parses the file)."""
-    g = graph('--params-file', str(TUNED), *remap, *QUICK)
-    assert g.get('census.theta', 'census.P2', 'census.c_low', 'gcp_lr_check', 'sad.theta') == [
-        0.5, 64.0, 10.0, True, 0.9]
+    g = graph('--params-file', str(PAPER), *remap, *QUICK)
+    assert g.get('census.theta', 'census.P1', 'census.c_low', 'gcp_lr_check', 'sad.P2') == [
+        0.6, 4.0, 1.3, False, 14.0]  # the defaults differ: census.P1 8.0, sad.P2 0.5, ...
 
 
 def test_dump_then_load_restores_exactly_what_was_dumped(graph, tmp_path):
     g = graph('-r', '__ns:=/stereo', *QUICK)
-    for name, text in [('sad.P1', '2.0'), ('sad.P2', '30.0'), ('census.P2', '64.0'),
-                       ('sad.theta', '0.7'), ('sad.window', '7'), ('cost', 'sad'),
-                       ('paths', '8'), ('approximate_sync', 'true')]:
+    for name, text in [('sad.P2', '30.0'), ('sad.P1', '2.0'), ('census.P2', '64.0'),
+                       ('census.c_low', '2.0'), ('census.c_hi', '5.0'), ('sad.theta', '0.7'),
+                       ('sad.window', '7'), ('cost', 'sad'), ('paths', '8'),
+                       ('approximate_sync', 'true')]:
         assert g.set_text(name, text).successful, name
+        assert not g.node.params.pending, name
     dumped = g.dump(tmp_path / 'dump.yaml')
     doc = yaml.safe_load(dumped.read_text())
     assert list(doc) == ['/stereo/gcp_stereo_node']
     before = doc['/stereo/gcp_stereo_node']['ros__parameters']
-    for name, text in [('cost', 'census'), ('sad.P1', '1.0'), ('sad.P2', '14.0'),
-                       ('census.P2', '128.0'), ('paths', '16'), ('approximate_sync', 'false')]:
+    for name, text in [('cost', 'census'), ('sad.P1', '0.02'), ('sad.P2', '0.5'),
+                       ('census.c_hi', '200.0'), ('census.c_low', '10.0'), ('census.P2', '128.0'),
+                       ('paths', '16'), ('approximate_sync', 'false')]:
         assert g.set_text(name, text).successful, name
-    results = g.load(dumped)  # alphabetical: census.*, cost, ..., sad.* after cost
+    # Alphabetical: census.c_hi 5 before census.c_low 2 (c_low 10 > 5 meanwhile), cost
+    # before sad.*, sad.P1 2 before sad.P2 30 (P2 0.5 < 2 meanwhile): values that cross wait.
+    results = g.load(dumped)
     names = list(rclpy.parameter.parameter_dict_from_yaml_file(str(dumped), True))
     failed = {n for n, r in zip(names, results, strict=True) if not r.successful}
     # Only what every rclpy node refuses to change: read-only QoS and type-description flags.
@@ -144,6 +149,7 @@ def test_dump_then_load_restores_exactly_what_was_dumped(graph, tmp_path):
     after = yaml.safe_load(g.dump(tmp_path / 'again.yaml').read_text())
     assert after['/stereo/gcp_stereo_node']['ros__parameters'] == before
     config = g.node.params.pipeline.config
+    assert not g.node.params.pending
     assert (config.cost, config.p1, config.p2, config.theta, config.window, config.paths) == (
         'sad', 2.0, 30.0, 0.7, 7, 8)
 
@@ -251,7 +257,7 @@ def test_ros2_run_finds_every_command_after_a_colcon_install(colcon_install, mon
     prefix = Path(get_package_prefix('gcp_stereo_ros'))
     share = Path(get_package_share_directory('gcp_stereo_ros'))
     assert prefix == colcon_install.prefix
-    for relative in ('package.xml', 'config/gcp_stereo.yaml', 'config/gcp_stereo_tuned.yaml',
+    for relative in ('package.xml', 'config/gcp_stereo.yaml', 'config/gcp_stereo_paper.yaml',
                      'config/fastdds.xml', 'launch/gcp_stereo.launch.py'):
         assert (share / relative).is_file(), relative
     # ros2pkg.api.get_executable_paths: executable files under <prefix>/lib/<package>
@@ -338,4 +344,5 @@ def test_a_start_up_value_for_an_unknown_name_stops_the_node(tmp_path):
                               capture_output=True, text=True, timeout=60)
         assert proc.returncode == 2, proc.stderr
         line, = proc.stderr.strip().splitlines()
-        assert line.startswith('gcp_stereo_node: cannot start: unknown parameter(s) ' + says), line
+        assert line.startswith('gcp_stereo_node: error: cannot start: unknown parameter(s) '
+                               + says), line

@@ -21,10 +21,10 @@ class Diagnostics:
 
     Values: images taken per second per side, pairs processed per second, latency from the
     images' stamp to publishing (mean and max over the last second), pairs dropped as stale,
-    images dropped unmatched, errors, device and weights. Level WARN when images arrive but
-    no pair has synced for NO_PAIR_SECONDS (the message says which topic is missing and
-    why) or when pairs were skipped in the last second; ERROR when the CNN weights cannot be
-    loaded.
+    images dropped unmatched, errors, device and weights. Level WARN while crossed parameter
+    values wait (P1 > P2, c_low > c_hi), when images arrive but no pair has synced for
+    NO_PAIR_SECONDS (the message says which topic is missing and why) or when pairs were
+    skipped in the last second; ERROR when the CNN weights cannot be loaded.
     """
 
     def __init__(self, node):
@@ -70,6 +70,10 @@ class Diagnostics:
         level, message = DiagnosticStatus.OK, 'processing' if rates[2] else 'waiting for images'
         if node.weights_error:
             level, message = DiagnosticStatus.ERROR, f'CNN weights: {node.weights_error}'
+        elif node.params.pending:
+            level = DiagnosticStatus.WARN
+            message = ('; '.join(node.params.pending)
+                       + ': parameters waiting, the last consistent ones are in use')
         elif (reason := self._no_pair(now)) is not None:
             level, message = DiagnosticStatus.WARN, reason
         elif sample[4] > last[4]:

@@ -3,14 +3,14 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
 
-from .params import (BY_NAME, check_names, coerce, config_from_params, make_sync, PARAMS,
-                     RCLPY_PARAMS)
+from .params import (BY_NAME, check_names, coerce, config_from_params, inconsistencies,
+                     make_sync, PARAMS, RCLPY_PARAMS, uncrossed)
 from ..stereo.pipeline import StereoPipeline
 
 
 def descriptor(param):
     """Describe a `params.Param` for ROS: its description, range or choices."""
-    desc = ParameterDescriptor(description=param.description)
+    desc = ParameterDescriptor(description=param.description, dynamic_typing=param.dynamic)
     if param.choices:
         desc.additional_constraints = 'one of ' + ', '.join(map(str, param.choices))
     if param.range is not None:
@@ -45,9 +45,12 @@ class LiveParameters:
 
     A start-up value for a name the node does not have is refused (ValueError). A request
     is validated whole, by building the pipeline it asks for (a missing weights file is
-    refused here, with its path), and applied only if every value is valid. A whole number
-    set for a decimal parameter is taken as that decimal. No parameter changes another.
-    `on_change(names)` is called with the names whose values changed.
+    refused here, with its path), and refused with the reason if any value is invalid. A
+    whole number set for a decimal parameter is taken as that decimal. No parameter changes
+    another. Values that cross within a cost (P1 > P2, c_low > c_hi), as when
+    `ros2 param load` sets P1 before P2, are accepted and wait, with a warning: the pipeline
+    keeps the last consistent values (`pending` says why) until a later value uncrosses
+    them. `on_change(names)` is called with the names whose values changed.
     """
 
     def __init__(self, node, on_change):
@@ -62,6 +65,7 @@ class LiveParameters:
                     if n not in RCLPY_PARAMS and not n.startswith('qos_overrides.'))
         self.values = {p.name: node.get_parameter(p.name).value for p in PARAMS}
         self.pipeline = StereoPipeline(config_from_params(self.values))
+        self.pending = []
         self._candidate = None
         node.add_pre_set_parameters_callback(self._decimals)
         node.add_on_set_parameters_callback(self._validate)
@@ -81,23 +85,28 @@ class LiveParameters:
             return SetParametersResult(successful=True)
         values = {**self.values, **changes}
         try:
-            config = config_from_params(values)
+            config = config_from_params(uncrossed(values))  # every value valid on its own
             make_sync(values)
             pipeline = self.pipeline.with_config(config)
             if config.use_gcp:
                 pipeline.net
         except Exception as err:  # any invalid value is refused with its reason
             return SetParametersResult(successful=False, reason=str(err))
-        self._candidate = (values, pipeline)
-        return SetParametersResult(successful=True)
+        pending = inconsistencies(values)
+        self._candidate = (values, self.pipeline if pending else pipeline, pending)
+        return SetParametersResult(successful=True)  # rclpy drops a reason given with success
 
     def _apply(self, params):
         if self._candidate is None:
             return
-        values, self.pipeline = self._candidate
+        values, self.pipeline, self.pending = self._candidate
         changed = [n for n in values if values[n] != self.values[n]]
         self.values = values
         if changed:
             self._on_change(changed)
-        self._node.get_logger().info('parameters: ' + ', '.join(
+        logger = self._node.get_logger()
+        logger.info('parameters: ' + ', '.join(
             f'{p.name}={p.value!r}' for p in params if p.name in BY_NAME))
+        if self.pending:
+            logger.warn('; '.join(self.pending) + ': waiting for that, the node keeps its last '
+                        f'consistent values: {self.pipeline.config}')

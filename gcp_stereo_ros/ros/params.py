@@ -33,6 +33,7 @@ class Param:
     range: tuple | None = None  # noqa: A003 (read elsewhere as p.range, so keep the name)
     choices: tuple | None = None  # the only values allowed (said in the descriptor)
     cost: str | None = None  # the matching cost this value belongs to (None = any)
+    dynamic: bool = False  # takes values of more than one type (bf16: true, false or 'auto')
 
 
 def _cost_params(cost):
@@ -41,8 +42,9 @@ def _cost_params(cost):
     return (
         Param(f'{cost}.window', _D.window, f'{cost}: matching window size in pixels (odd)',
               'window', (3, top, 2), cost=cost),
-        Param(f'{cost}.theta', d['theta'], f'{cost}: GCP threshold on the CNN confidence',
-              'theta', (0.0, 1.0, 0.0), cost=cost),
+        Param(f'{cost}.theta', d['theta'], f'{cost}: GCP threshold on the calibrated CNN '
+              "confidence: the probability that the pixel's CNN disparity is within 1 px of "
+              'the truth', 'theta', (0.0, 1.0, 0.0), cost=cost),
         Param(f'{cost}.P1', d['p1'], f'{cost}: SGM penalty for a 1 px disparity change',
               'p1', (0.0, 10000.0, 0.0), cost=cost),
         Param(f'{cost}.P2', d['p2'], f'{cost}: SGM penalty for larger disparity jumps (>= P1)',
@@ -71,8 +73,8 @@ PARAMS = (
     Param('weights', _D.weights,
           "CNN weights file ('' = the weights shipped with the package)", 'weights'),
     Param('device', _D.device, "torch device of the CNN: 'cpu', 'cuda' or 'cuda:N'", 'device'),
-    Param('bf16', _D.bf16, 'bfloat16 CNN descriptors (CPUs with avx512_bf16 or AMX, CUDA)',
-          'bf16'),
+    Param('bf16', _D.bf16, "bfloat16 CNN descriptors: true, false or 'auto' (on where native: "
+          'CPUs with avx512_bf16 or AMX, CUDA)', 'bf16', dynamic=True),
     Param('subpixel', _D.subpixel, 'parabola fit for sub-pixel disparities', 'subpixel'),
     Param('lr_check', _D.lr_check,
           'left-right consistency check (invalid pixels published as min_disparity - 1)',
@@ -99,6 +101,7 @@ PARAMS = (
           range=(0, 100000, 1)),
 )
 BY_NAME = {p.name: p for p in PARAMS}
+ORDERED = (('P1', 'P2'), ('c_low', 'c_hi'))  # (low, high): low <= high within each cost
 SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds')
 INPUT_PARAMS = ('image_transport', 'rectify')
 
@@ -123,7 +126,7 @@ def coerce(name, value):
     p = BY_NAME[name]
     if isinstance(p.default, float) and type(value) is int:
         value = float(value)
-    if type(value) is not type(p.default):
+    if type(value) is not type(p.default) and not p.dynamic:
         raise ValueError(f'{name} takes a {type(p.default).__name__} value, got {value!r}')
     if p.choices and value not in p.choices:
         raise ValueError(f'{name} must be one of {", ".join(map(repr, p.choices))}, '
@@ -149,6 +152,33 @@ def config_from_params(values):
         except ValueError as err:
             raise ValueError(f'{cost}: {err}') from None
     return configs[values.get('cost', _D.cost)]
+
+
+def inconsistencies(values):
+    """
+    Return the reasons why `values` break P1 <= P2 or c_low <= c_hi within a cost.
+
+    The node takes such values one at a time (`ros2 param load` sets P1 before P2), so a
+    pair may cross for a while; an empty list when none does.
+    """
+    reasons = []
+    for cost in COSTS:
+        for low, high in ORDERED:
+            a, b = (values.get(f'{cost}.{n}', BY_NAME[f'{cost}.{n}'].default) for n in (low, high))
+            if a > b:
+                reasons.append(f'{cost}: {high} ({b}) must be >= {low} ({a})')
+    return reasons
+
+
+def uncrossed(values):
+    """Return `values` with each crossed pair's high value raised to the low one."""
+    out = dict(values)
+    for cost in COSTS:
+        for low, high in ORDERED:
+            a, b = (out.get(f'{cost}.{n}', BY_NAME[f'{cost}.{n}'].default) for n in (low, high))
+            if a > b:
+                out[f'{cost}.{high}'] = a
+    return out
 
 
 def make_sync(values):

@@ -11,13 +11,16 @@ import json
 from pathlib import Path
 import resource
 import statistics
+import sys
 import time
 
 import cv2
 import numpy as np
 
+from .cli import console_main, positive_int
 from .evaluate import opencv_sgbm
 from ..evaluation.datasets import list_frames, load_frame
+from ..stereo.cnn import bf16_native
 from ..stereo.cost import cost_volume
 from ..stereo.images import gray_pair
 from ..stereo.pipeline import StereoConfig, StereoPipeline
@@ -60,14 +63,15 @@ def volume_stage_seconds(left, right, nd, repeat):
     return {name: median_seconds(fn, repeat) for name, fn in stages.items()}
 
 
+@console_main('gcp-stereo-bench')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--dataset', default='motorcycle',
                     help="dataset of the pair (default: 'motorcycle')")
     ap.add_argument('--frame', help='frame name in that dataset (default: the first)')
-    ap.add_argument('--max-disp', type=int, default=128)
-    ap.add_argument('--repeat', type=int, default=5)
+    ap.add_argument('--max-disp', type=positive_int, default=128)
+    ap.add_argument('--repeat', type=positive_int, default=5)
     ap.add_argument('--json', type=Path, help='write {"stages", "ratios", "peak_rss_mb"} here')
     args = ap.parse_args(argv)
 
@@ -78,9 +82,10 @@ def main(argv=None):
     print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, '
           f'repeat {args.repeat}')
     seconds = volume_stage_seconds(left, right, nd, args.repeat)
-    pipeline = StereoPipeline(StereoConfig.for_cost('census', max_disp=nd))
+    pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
+    print(f"pipeline: the defaults, bf16 'auto' = {bf16_native(pipeline.config.device)} here")
     breakdown = {}
-    for suffix, bf16 in (('', False), ('_bf16', True)):
+    for suffix, bf16 in (('', 'auto'), ('_fp32', False), ('_bf16', True)):
         pipe = pipeline.with_config(pipeline.config.replace(bf16=bf16))
         seconds['pipeline' + suffix], breakdown['pipeline' + suffix] = median_pipeline(
             pipe, left, right, args.repeat)
@@ -94,7 +99,7 @@ def main(argv=None):
         print(f'{name:<16}{s:9.3f}{ratios.get(name, 1.0):13.2f}')
     print(f'peak RSS {peak:.0f} MB')
     for name, stage_seconds in breakdown.items():
-        print(f'{name} = Census+GCP+SGM (16 paths) end to end; median of its stages:',
+        print(f'{name} = default Census+GCP+SGM end to end; median of its stages:',
               ', '.join(f'{k} {v:.3f} s' for k, v in stage_seconds.items()))
     if args.json:
         args.json.write_text(
@@ -102,4 +107,4 @@ def main(argv=None):
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
