@@ -154,6 +154,15 @@ def config_from_params(values):
     return configs[values.get('cost', _D.cost)]
 
 
+def _crossed(values):
+    """Yield (cost, low name, high name, low value, high value) of each pair that crosses."""
+    for cost in COSTS:
+        for low, high in ORDERED:
+            a, b = (values.get(f'{cost}.{n}', BY_NAME[f'{cost}.{n}'].default) for n in (low, high))
+            if a > b:
+                yield cost, low, high, a, b
+
+
 def inconsistencies(values):
     """
     Return the reasons why `values` break P1 <= P2 or c_low <= c_hi within a cost.
@@ -161,24 +170,13 @@ def inconsistencies(values):
     The node takes such values one at a time (`ros2 param load` sets P1 before P2), so a
     pair may cross for a while; an empty list when none does.
     """
-    reasons = []
-    for cost in COSTS:
-        for low, high in ORDERED:
-            a, b = (values.get(f'{cost}.{n}', BY_NAME[f'{cost}.{n}'].default) for n in (low, high))
-            if a > b:
-                reasons.append(f'{cost}: {high} ({b}) must be >= {low} ({a})')
-    return reasons
+    return [f'{cost}: {high} ({b}) must be >= {low} ({a})'
+            for cost, low, high, a, b in _crossed(values)]
 
 
 def uncrossed(values):
     """Return `values` with each crossed pair's high value raised to the low one."""
-    out = dict(values)
-    for cost in COSTS:
-        for low, high in ORDERED:
-            a, b = (out.get(f'{cost}.{n}', BY_NAME[f'{cost}.{n}'].default) for n in (low, high))
-            if a > b:
-                out[f'{cost}.{high}'] = a
-    return out
+    return {**values, **{f'{cost}.{high}': a for cost, _, high, a, _ in _crossed(values)}}
 
 
 def make_sync(values):
@@ -197,18 +195,18 @@ def _flatten(params, prefix=''):
     return flat
 
 
-def load_params_file(path, node_name=NODE_NAME):
+def load_params_file(path):
     """
     Return the parameter values a ROS params YAML gives the node.
 
-    The entries are those keyed `/**` (or any wildcard) and those for `node_name` in any
-    namespace (`node_name`, `/ns/node_name`, `/**/node_name`), wildcards first, merged in
-    that order as rcl does; a file with a single entry (what `ros2 param dump` writes, for
-    any node name) is taken whatever its key. Nested names are flattened (`census: {P1: 4}`
-    -> `census.P1`); rclpy's own parameters (`use_sim_time`, `start_type_description_service`,
-    `qos_overrides`) are left out, and whole numbers for decimal parameters become floats.
-    Raises ValueError for an unreadable file, no entry for the node, unknown parameters
-    or values of the wrong type.
+    The entries are those keyed `/**` (or any wildcard) and those for the node in any
+    namespace (`gcp_stereo_node`, `/ns/gcp_stereo_node`, `/**/gcp_stereo_node`), wildcards
+    first, merged in that order as rcl does; a file with a single entry (what `ros2 param
+    dump` writes, for any node name) is taken whatever its key. Nested names are flattened
+    (`census: {P1: 4}` -> `census.P1`); rclpy's own parameters (`use_sim_time`,
+    `start_type_description_service`, `qos_overrides`) are left out, and whole numbers for
+    decimal parameters become floats. Raises ValueError for an unreadable file, no entry for
+    the node, unknown parameters or values of the wrong type.
     """
     path = Path(path)
     try:
@@ -220,14 +218,14 @@ def load_params_file(path, node_name=NODE_NAME):
                } if isinstance(doc, dict) else {}
     last = {key: str(key).rstrip('/').rsplit('/', 1)[-1] for key in entries}
     wild = [key for key in entries if last[key] in ('*', '**')]
-    named = [key for key in entries if last[key] == node_name]
+    named = [key for key in entries if last[key] == NODE_NAME]
     keys = wild + named
     if not keys and len(entries) == 1:
         keys = list(entries)
     if not keys:
         found = ', '.join(map(str, entries)) or 'none'
-        raise ValueError(f'{path}: no parameters for {node_name} (expected "/**:" or '
-                         f'"{node_name}:" with "ros__parameters:" inside; entries: {found})')
+        raise ValueError(f'{path}: no parameters for {NODE_NAME} (expected "/**:" or '
+                         f'"{NODE_NAME}:" with "ros__parameters:" inside; entries: {found})')
     values = {}
     for key in keys:
         values.update(_flatten(entries[key]))
