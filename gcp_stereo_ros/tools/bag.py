@@ -391,9 +391,23 @@ class Runner:
 
 def run(args):
     values = load_params_file(args.params) if args.params else {}
+    convert(run_pipeline(values), values, args)
+
+
+def run_pipeline(values):
+    """Return the pipeline of node parameters `values` for `convert`, its CNN loaded."""
     pipeline = StereoPipeline(config_from_params(values))
     if pipeline.config.use_gcp:
         pipeline.net  # a missing weights file fails here, before any output
+    return pipeline
+
+
+def convert(pipeline, values, args):
+    """
+    Write bag args.out: bag args.inp plus the outputs of `pipeline`, as `run` describes.
+
+    `values`: the node parameters (the pair sync's); args: the options of `run`.
+    """
     sync = make_sync(values)
     rectify = args.rectify or values.get('rectify', False)
     with open_bag(args.inp) as reader, output_bag(args.out, args.storage, args.force) as writer:
@@ -544,14 +558,42 @@ def _outputs(text):
     return names
 
 
+STORAGE = {'choices': ('sqlite3', 'mcap'), 'default': 'mcap',
+           'help': 'storage plugin of the output bag (default mcap)'}
+
+
+def add_run_options(ap):
+    """Add the options of `run` that apply to any bag (all but --in, --out, --force) to `ap`."""
+    ap.add_argument('--params', type=Path, metavar='YAML',
+                    help='node parameters file, e.g. config/gcp_stereo.yaml, or what `ros2 '
+                         'param dump` wrote (default: the node defaults)')
+    ap.add_argument('--left', metavar='TOPIC',
+                    help='left image topic, sensor_msgs/Image or CompressedImage (default: '
+                         'the one stereo pair of image topics in the bag)')
+    ap.add_argument('--right', metavar='TOPIC', help='right image topic (with --left)')
+    ap.add_argument('--left-info', metavar='TOPIC',
+                    help='left camera_info topic (default: camera_info beside the left images, '
+                         'if the bag has it)')
+    ap.add_argument('--right-info', metavar='TOPIC', help='right camera_info topic')
+    ap.add_argument('--rectify', action='store_true',
+                    help='the images are raw: rectify them with the camera_info K, D, R, P '
+                         "(default: the params file's rectify, else false)")
+    ap.add_argument('--outputs', type=_outputs, default={'disparity', 'gcp_mask', 'confidence'},
+                    metavar='LIST',
+                    help=f'comma-separated outputs to write, of {",".join(OUTPUTS)} (default '
+                         'disparity,gcp_mask,confidence; depth and points2 need camera_info)')
+    ap.add_argument('--png', type=Path, metavar='DIR',
+                    help='write colour-mapped disparity and GCP-mask PNGs here')
+    ap.add_argument('--storage', **STORAGE)
+    ap.add_argument('--namespace', default='', metavar='NS',
+                    help='look for the stereo pair under this namespace and write the outputs '
+                         'there (default: the namespace of the image topics)')
+
+
 def parser():
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest='command', required=True)
-    storage = {'choices': ('sqlite3', 'mcap'), 'default': 'mcap',
-               'help': 'storage plugin of the output bag (default mcap)'}
-    namespace = {'default': '', 'metavar': 'NS',
-                 'help': 'topics under this namespace (default: none, e.g. /left/image_rect)'}
     force = {'action': 'store_true', 'help': 'replace an existing --out'}
 
     mk = sub.add_parser('make', help='dataset stereo pairs -> bag with the node input topics '
@@ -561,12 +603,13 @@ def parser():
                          "'motorcycle'")
     mk.add_argument('--frames', nargs='+', metavar='NAME',
                     help='frame names (default: all of the dataset)')
-    mk.add_argument('--storage', **storage)
+    mk.add_argument('--storage', **STORAGE)
     mk.add_argument('--out', required=True, type=Path, metavar='BAG',
                     help='bag to write (a directory)')
     mk.add_argument('--rate', type=positive, default=10.0, metavar='HZ',
                     help='frames per second (default 10)')
-    mk.add_argument('--namespace', **namespace)
+    mk.add_argument('--namespace', default='', metavar='NS',
+                    help='topics under this namespace (default: none, e.g. /left/image_rect)')
     mk.add_argument('--compressed', choices=('png', 'jpeg'),
                     help='write sensor_msgs/CompressedImage on left/image_rect/compressed, '
                          'right/image_rect/compressed, as image_transport does (png is '
@@ -579,30 +622,7 @@ def parser():
                     help='bag directory, or its .mcap / .db3 file')
     rn.add_argument('--out', required=True, type=Path, metavar='BAG',
                     help='bag to write: the input plus the outputs')
-    rn.add_argument('--params', type=Path, metavar='YAML',
-                    help='node parameters file, e.g. config/gcp_stereo.yaml '
-                         '(default: the node defaults)')
-    rn.add_argument('--left', metavar='TOPIC',
-                    help='left image topic, sensor_msgs/Image or CompressedImage (default: '
-                         'the one stereo pair of image topics in the bag)')
-    rn.add_argument('--right', metavar='TOPIC', help='right image topic (with --left)')
-    rn.add_argument('--left-info', metavar='TOPIC',
-                    help='left camera_info topic (default: camera_info beside the left images, '
-                         'if the bag has it)')
-    rn.add_argument('--right-info', metavar='TOPIC', help='right camera_info topic')
-    rn.add_argument('--rectify', action='store_true',
-                    help='the images are raw: rectify them with the camera_info K, D, R, P '
-                         "(default: the params file's rectify, else false)")
-    rn.add_argument('--outputs', type=_outputs, default={'disparity', 'gcp_mask', 'confidence'},
-                    metavar='LIST',
-                    help=f'comma-separated outputs to write, of {",".join(OUTPUTS)} (default '
-                         'disparity,gcp_mask,confidence; depth and points2 need camera_info)')
-    rn.add_argument('--png', type=Path, metavar='DIR',
-                    help='write colour-mapped disparity and GCP-mask PNGs here')
-    rn.add_argument('--storage', **storage)
-    rn.add_argument('--namespace', default='', metavar='NS',
-                    help='look for the stereo pair under this namespace and write the outputs '
-                         'there (default: the namespace of the image topics)')
+    add_run_options(rn)
     rn.add_argument('--force', **force)
 
     pl = sub.add_parser('play',

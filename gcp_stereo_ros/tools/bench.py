@@ -83,9 +83,9 @@ def main(argv=None):
           f'repeat {args.repeat}')
     seconds = volume_stage_seconds(left, right, nd, args.repeat)
     pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
-    print(f"pipeline: the defaults, bf16 'auto' = {bf16_native(pipeline.config.device)} here")
+    print(f"pipeline: the defaults; bf16 'auto' would be {bf16_native()} here")
     breakdown = {}
-    for suffix, bf16 in (('', 'auto'), ('_fp32', False), ('_bf16', True)):
+    for suffix, bf16 in (('', pipeline.config.bf16), ('_bf16', True)):
         pipe = pipeline.with_config(pipeline.config.replace(bf16=bf16))
         seconds['pipeline' + suffix], breakdown['pipeline' + suffix] = median_pipeline(
             pipe, left, right, args.repeat)
