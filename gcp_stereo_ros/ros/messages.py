@@ -47,18 +47,19 @@ def disparity_message(types, header, disp, config, geom, data=lambda a: a):
     converts the uint8 buffer to what the message class wants (array.array('B') for rclpy,
     the numpy array for rosbags).
     """
-    border = config.window // 2
+    f = config.downsample  # matched at 1/f resolution: borders in full-size pixels
+    border = config.window // 2 * f
     h, w = disp.shape
     out = disp - np.float32(geom.cx_offset) if geom.cx_offset else disp.copy()
     out[np.isnan(out)] = -1.0
-    left = min(config.max_disp - 1 + border, w)
+    left = min((config.matched_disp - 1) * f + border, w)
     roi = types.RegionOfInterest(x_offset=left, y_offset=border, width=max(w - border - left, 0),
                                  height=max(h - 2 * border, 0), do_rectify=False)
     return types.DisparityImage(
         header=header, image=image_message(types, header, out, '32FC1', data),
         f=geom.f, t=geom.t, valid_window=roi,
         min_disparity=0.0, max_disparity=float(config.max_disp - 1),
-        delta_d=1.0 / 16 if config.subpixel else 1.0)
+        delta_d=f / 16 if config.subpixel else float(f))
 
 
 def image_message(types, header, array, encoding, data=lambda a: a):

@@ -6,13 +6,14 @@ cost volume -> (CNN confidence -> GCPs -> refinement) -> SGM -> winner-takes-all
 import dataclasses
 from dataclasses import dataclass
 import math
+import re
 import time
 
 import numpy as np
 
 from . import cost as cost_mod
 from .gcp import refine, select
-from .images import gray_pair
+from .images import bin_area, gray_pair, upsample
 from .sgm import aggregate, disparity, path_sum_bound, PATHS
 
 # The paper's parameters for each matching cost (Zhong et al., section 4).
@@ -20,6 +21,7 @@ COST_DEFAULTS = {
     'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3},
     'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001},
 }
+DOWNSAMPLE = (1, 2, 4)
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,9 @@ class StereoConfig:
     subpixel: bool = False
     lr_check: bool = False
     median: bool = False
+    # Match at 1/downsample of the resolution (area-binned images, max_disp / downsample);
+    # the outputs come back at full size, disparities in full-size pixels.
+    downsample: int = 1
 
     @classmethod
     def for_cost(cls, cost, **overrides):
@@ -73,9 +78,17 @@ class StereoConfig:
                              f'got {self.theta}')
         if self.c_low > self.c_hi:
             raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
-        if not (self.device == 'cpu' or self.device.startswith('cuda')):
+        if not (self.device == 'cpu' or re.fullmatch(r'cuda(:\d+)?', self.device)):
             raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
+        if not (isinstance(self.downsample, (int, np.integer)) and not isinstance(
+                self.downsample, bool) and self.downsample in DOWNSAMPLE):
+            raise ValueError(f'downsample must be one of {DOWNSAMPLE}, got {self.downsample!r}')
         return self
+
+    @property
+    def matched_disp(self):
+        """Return the disparities searched at the matching resolution: max_disp / downsample."""
+        return -(-self.max_disp // self.downsample)
 
 
 @dataclass
@@ -153,37 +166,61 @@ class StereoPipeline:
         """
         Return the StereoResult of a pair.
 
-        `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair and max_disp,
-        to sweep GCP/SGM parameters without running the CNN again.
+        `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair, max_disp and
+        downsample, as its StereoResult holds them, to sweep GCP/SGM parameters without
+        running the CNN again.
         """
         cfg = self.config
-        net = self.net if cfg.use_gcp and confidence is None else None
+        if cfg.use_gcp and confidence is not None and len(confidence) != 3:
+            raise ValueError('confidence must be (cof_c, cof_d, cof_dr), '
+                             'as StereoResult holds them')
         seconds = {}
         t = time.perf_counter()
 
         def lap(stage):
+            """Record the time since the last lap as `stage`; None only restarts the clock."""
             nonlocal t
             now = time.perf_counter()
-            seconds[stage] = now - t
+            if stage is not None:
+                seconds[stage] = now - t
             t = now
 
         left, right = gray_pair(left, right)
+        shape, f = left.shape, cfg.downsample
+        if f > 1:
+            left, right = bin_area(left, f), bin_area(right, f)
+            if cfg.use_gcp and confidence is not None:  # undo the upsampling of its run
+                h, w = left.shape
+                cof_c, cof_d, cof_dr = (np.asarray(a)[:h * f:f, :w * f:f] for a in confidence)
+                confidence = cof_c, cof_d // f, cof_dr // f
+            lap('downsample')
+        outputs = self._match(left, right, confidence if cfg.use_gcp else None, lap, seconds)
+        if f > 1:  # back to full size, disparities in full-size pixels
+            disp, gcp, cof_c, cof_d, cof_dr = outputs
+            disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
+                                   for a in (disp, cof_d, cof_dr))
+            outputs = tuple(None if a is None else upsample(a, f, shape)
+                            for a in (disp, gcp, cof_c, cof_d, cof_dr))
+            lap('upsample')
+        return StereoResult(*outputs, seconds)
+
+    def _match(self, left, right, confidence, lap, seconds):
+        """Return (disparity, gcp, cof_c, cof_d, cof_dr) of a gray pair, on the CPU."""
+        cfg = self.config
+        nd = cfg.matched_disp
         gcp = cof_c = cof_d = cof_dr = None
-        if net is not None:
-            from .cnn import confidence as cnn_confidence
-            confidence = cnn_confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16,
-                                        seconds=seconds)
-            t = time.perf_counter()
         if cfg.use_gcp:
-            if len(confidence) != 3:
-                raise ValueError('confidence must be (cof_c, cof_d, cof_dr), '
-                                 'as StereoResult holds them')
+            if confidence is None:
+                from .cnn import confidence as cnn_confidence
+                confidence = cnn_confidence(self.net, left, right, nd, cfg.device, cfg.bf16,
+                                            seconds=seconds)
+                lap(None)  # the CNN timed its own stages
             cof_c, cof_d, cof_dr = confidence
-        shape = left.shape + (cfg.max_disp,)
+        shape = left.shape + (nd,)
         scale = fixed_point_scale(cfg)
         dtype = np.dtype(np.float32 if scale is None else np.uint16)
         fixed = (lambda v: v) if scale is None else (lambda v: round(v * scale))
-        volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window,
+        volume = cost_mod.cost_volume(left, right, nd, cfg.cost, cfg.window,
                                       self._array('cost', shape, dtype), scale or 1, dtype)
         lap('cost')
         if cfg.use_gcp:
@@ -196,4 +233,4 @@ class StereoPipeline:
         lap('sgm')
         disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)
         lap('wta')
-        return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds)
+        return disp, gcp, cof_c, cof_d, cof_dr
