@@ -43,11 +43,17 @@ def gray_pair(left, right):
     return lg, rg
 
 
-def standardize(gray):
-    """Per-image normalization of the paper: subtract the mean, divide by the std."""
+def mean_std(gray):
+    """Return the mean and the std (1 for a flat image) that `standardize` uses."""
     g = np.asarray(gray, dtype=np.float32)
     std = float(g.std())
-    return (g - float(g.mean())) / (std if std > 1e-6 else 1.0)
+    return float(g.mean()), (std if std > 1e-6 else 1.0)
+
+
+def standardize(gray):
+    """Per-image normalization of the paper: subtract the mean, divide by the std."""
+    mean, std = mean_std(gray)
+    return (np.asarray(gray, dtype=np.float32) - mean) / std
 
 
 def bin_area(gray, factor):

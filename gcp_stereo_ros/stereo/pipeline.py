@@ -13,8 +13,8 @@ import numpy as np
 
 from . import cost as cost_mod
 from .gcp import refine, select
-from .images import bin_area, gray_pair, upsample
-from .sgm import aggregate, disparity, path_sum_bound, PATHS
+from .images import bin_area, gray_pair, mean_std, upsample
+from .sgm import aggregate, disparity, finish, path_sum_bound, PATHS
 
 # The paper's parameters for each matching cost (Zhong et al., section 4).
 COST_DEFAULTS = {
@@ -133,6 +133,9 @@ class StereoPipeline:
 
     def __init__(self, config=None, net=None, _workspace=None):
         self.config = (config or StereoConfig()).validate()
+        if self.config.device != 'cpu':
+            from .gpu import check_device
+            check_device(self.config.device)
         self._net = net
         self._workspace = {} if _workspace is None else _workspace
 
@@ -159,7 +162,11 @@ class StereoPipeline:
     def net(self):
         if self._net is None:
             from .cnn import load_net  # torch is imported only when GCPs are used
-            self._net = load_net(self.config.weights or None, self.config.device)
+            device = self.config.device
+            if device != 'cpu':
+                from .gpu import torch_device
+                device = torch_device(device)
+            self._net = load_net(self.config.weights or None, device)
         return self._net
 
     def __call__(self, left, right, confidence=None):
@@ -194,7 +201,8 @@ class StereoPipeline:
                 cof_c, cof_d, cof_dr = (np.asarray(a)[:h * f:f, :w * f:f] for a in confidence)
                 confidence = cof_c, cof_d // f, cof_dr // f
             lap('downsample')
-        outputs = self._match(left, right, confidence if cfg.use_gcp else None, lap, seconds)
+        match = self._match if cfg.device == 'cpu' else self._match_cuda
+        outputs = match(left, right, confidence if cfg.use_gcp else None, lap, seconds)
         if f > 1:  # back to full size, disparities in full-size pixels
             disp, gcp, cof_c, cof_d, cof_dr = outputs
             disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
@@ -234,3 +242,67 @@ class StereoPipeline:
         disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)
         lap('wta')
         return disp, gcp, cof_c, cof_d, cof_dr
+
+    def _match_cuda(self, left, right, confidence, lap, seconds):
+        """
+        Return `_match`'s outputs, computed on the GPU `config.device` (see `gpu`).
+
+        One upload of the pair (and of `confidence` if given), the volumes stay in GPU
+        memory, one download of the outputs. The device is synchronized at each stage's end,
+        so that the stage times are the GPU's.
+        """
+        import torch
+
+        from . import gpu
+        from .cnn import device_confidence, padded_input
+        from .cost_cuda import cost_volume
+        from .gcp_cuda import select_refine
+        from .sgm_cuda import aggregate, winners
+
+        def stage(name):
+            gpu.synchronize()
+            lap(name)
+
+        cfg = self.config
+        nd = cfg.matched_disp
+        scale = fixed_point_scale(cfg)
+        dtype = np.dtype(np.float32 if scale is None else np.uint16)
+        fixed = (lambda v: v) if scale is None else (lambda v: round(v * scale))
+        shape, vtype = left.shape + (nd,), gpu.VOLUME_TYPES[dtype]
+        device = gpu.torch_device(cfg.device)
+        with gpu.current(cfg.device):
+            stats = [mean_std(g) for g in (left, right)]
+            pair = torch.from_numpy(np.stack([left, right])).to(device)
+            if cfg.use_gcp and confidence is not None:
+                cof = [torch.from_numpy(np.ascontiguousarray(a, t)).to(device)
+                       for a, t in zip(confidence, (np.float32, np.int32, np.int32))]
+            stage('upload')
+            if cfg.use_gcp or cfg.cost == 'sad':  # images.standardize on the device
+                standardized = torch.stack([(g - m) / s for g, (m, s) in zip(pair, stats)])
+            if cfg.use_gcp and confidence is None:
+                cof = device_confidence(self.net, padded_input(standardized), nd, cfg.bf16,
+                                        seconds)
+                lap(None)  # the CNN timed its own stages
+            volume = cost_volume(pair if cfg.cost == 'census' else standardized, nd, cfg.cost,
+                                 cfg.window, self._array('cuda_cost', shape, vtype),
+                                 scale or 1, dtype)
+            top = cost_mod.max_cost(cfg.cost, cfg.window) * (scale or 1)
+            stage('cost')
+            gcp = None
+            if cfg.use_gcp:
+                gcp = select_refine(volume, *cof, cfg.theta, fixed(cfg.c_hi), fixed(cfg.c_low),
+                                    cfg.gcp_lr_check)
+                top = max(top, fixed(cfg.c_hi))
+                stage('refine')
+            total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, top,
+                              self._array('cuda_total', shape, vtype))
+            self._workspace.update(cuda_cost=volume, cuda_total=total)
+            stage('sgm')
+            disp, consistent = winners(total, cfg.subpixel, cfg.lr_check)
+            stage('wta')
+            fresh = cof if cfg.use_gcp and confidence is None else []
+            disp, consistent, gcp, *fresh = (None if a is None else a.cpu().numpy()
+                                             for a in (disp, consistent, gcp, *fresh))
+            lap('download')
+        cof_c, cof_d, cof_dr = fresh or confidence or (None,) * 3
+        return finish(disp, consistent, cfg.median), gcp, cof_c, cof_d, cof_dr
