@@ -5,7 +5,7 @@ One thread per pixel, looping over d as the CPU kernels do. Census costs are int
 equal the CPU's exactly; SAD sums each window directly, in another order than the CPU's
 sliding sums, so it agrees within float32 rounding.
 """
-from numba import cuda
+from numba import cuda, njit
 import numpy as np
 import torch
 
@@ -77,7 +77,7 @@ def _sad_cost(left, right, rad, scale, invalid, out):
         out[y, x, d] = invalid
 
 
-@cuda.jit(device=True)
+@njit(inline='always')  # kernels call it too (it compiles for a GPU without one)
 def _valid(h, w, nd, rad, y, x):
     """Return how many d from 0 are valid at (x, y): both windows inside the images."""
     if rad <= y < h - rad and rad <= x < w - rad:

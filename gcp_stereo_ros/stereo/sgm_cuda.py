@@ -10,7 +10,7 @@ pixel, so no two threads write one cell, and the directions run one after the ot
 for float32 within float rounding (the CPU's compiler may reassociate its sums).
 The penalties and limits are the CPU's (`sgm.penalties`).
 """
-from numba import cuda
+from numba import cuda, njit
 import torch
 
 from . import gpu
@@ -23,7 +23,7 @@ def _starts(h, w, dx, dy):
     return rows * w + min(abs(dx), w) * (h - rows)
 
 
-@cuda.jit(device=True)
+@njit(inline='always')  # kernels call it too (it compiles for a GPU without one)
 def _start(b, h, w, dx, dy):
     """Return (x, y) of the b-th pixel whose predecessor (x - dx, y - dy) is outside."""
     rows = min(abs(dy), h)
