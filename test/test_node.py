@@ -202,7 +202,7 @@ def test_exact_and_approximate_sync(harness, pair):
 
 def test_set_parameters_live(harness, pair):
     left, right = pair
-    ok = harness.set_params(theta=0.95, P1=6.0, P2=100.0, paths=8)
+    ok = harness.set_params(theta=0.95, P1=6.0, P2=100.0, paths=8, downsample=2)
     assert all(r.successful for r in ok)
     for values, reason in [
         ({'P2': 2.0}, 'P2'),
@@ -211,13 +211,16 @@ def test_set_parameters_live(harness, pair):
         ({'cost': 'ncc'}, 'cost'),
         ({'weights': '/no/such/weights.pt'}, '/no/such/weights.pt'),
         ({'window': 10}, 'window'),
+        ({'downsample': 3}, 'downsample'),
+        ({'device': 'cuda:7'}, "device 'cuda:7'"),
     ]:
         (result,) = harness.set_params(**values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
     assert harness.node.get_parameter('theta').value == 0.95
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity after set')
-    overrides = {**harness.overrides, 'theta': 0.95, 'P1': 6.0, 'P2': 100.0, 'paths': 8}
+    overrides = {**harness.overrides, 'theta': 0.95, 'P1': 6.0, 'P2': 100.0, 'paths': 8,
+                 'downsample': 2}
     want, result = expected(overrides, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
     np.testing.assert_array_equal(image_to_array(harness.gcp[-1]),

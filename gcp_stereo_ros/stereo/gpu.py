@@ -67,7 +67,8 @@ def numpy_type(volume):
 
 def view(tensor):
     """Return what a kernel takes for `tensor`: a view, no copy."""
-    return tensor.numpy() if SIMULATED else cuda.as_cuda_array(tensor)
+    # No synchronization: torch and the kernels share the default stream, which orders them.
+    return tensor.numpy() if SIMULATED else cuda.as_cuda_array(tensor, sync=False)
 
 
 def launch(kernel, n, *args):

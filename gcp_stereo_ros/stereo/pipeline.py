@@ -122,6 +122,19 @@ def fixed_point_scale(cfg):
     return None
 
 
+def volume_arithmetic(cfg):
+    """
+    Return (scale, dtype, fixed) of the pipeline's volumes for `cfg`.
+
+    `fixed_point_scale` (None for float32), the volume type (uint16 with a scale, else
+    float32), and the map of a cost-unit parameter (P1, P2, C_hi, C_low) into the volume's.
+    """
+    scale = fixed_point_scale(cfg)
+    if scale is None:
+        return None, np.dtype(np.float32), lambda v: v
+    return scale, np.dtype(np.uint16), lambda v: round(v * scale)
+
+
 class StereoPipeline:
     """
     Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
@@ -225,9 +238,7 @@ class StereoPipeline:
                 lap(None)  # the CNN timed its own stages
             cof_c, cof_d, cof_dr = confidence
         shape = left.shape + (nd,)
-        scale = fixed_point_scale(cfg)
-        dtype = np.dtype(np.float32 if scale is None else np.uint16)
-        fixed = (lambda v: v) if scale is None else (lambda v: round(v * scale))
+        scale, dtype, fixed = volume_arithmetic(cfg)
         volume = cost_mod.cost_volume(left, right, nd, cfg.cost, cfg.window,
                                       self._array('cost', shape, dtype), scale or 1, dtype)
         lap('cost')
@@ -265,9 +276,7 @@ class StereoPipeline:
 
         cfg = self.config
         nd = cfg.matched_disp
-        scale = fixed_point_scale(cfg)
-        dtype = np.dtype(np.float32 if scale is None else np.uint16)
-        fixed = (lambda v: v) if scale is None else (lambda v: round(v * scale))
+        scale, dtype, fixed = volume_arithmetic(cfg)
         shape, vtype = left.shape + (nd,), gpu.VOLUME_TYPES[dtype]
         device = gpu.torch_device(cfg.device)
         with gpu.current(cfg.device):
