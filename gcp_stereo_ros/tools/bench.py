@@ -85,7 +85,8 @@ def main(argv=None):
     seconds = volume_stage_seconds(left, right, nd, args.repeat)
     pipeline = StereoPipeline(StereoConfig.for_cost('census', max_disp=nd))
     variants = {'pipeline': {}, 'pipeline_bf16': {'bf16': True},
-                'pipeline_downsample2': {'downsample': 2}, 'pipeline_downsample4': {'downsample': 4}}
+                'pipeline_downsample2': {'downsample': 2},
+                'pipeline_downsample4': {'downsample': 4}}
     try:
         gpu.check_device('cuda')
         variants.update(cuda_pipeline={'device': 'cuda'},
