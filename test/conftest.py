@@ -17,3 +17,20 @@ def data_dir():
     """`../shared/data` beside the checkout; CI always has it, so its absence fails loudly."""
     assert DATA.is_dir(), f'real test data expected at {DATA}'
     return DATA
+
+
+@pytest.fixture
+def kitti_occ_only(tmp_path, data_dir):
+    """
+    Build a KITTI 2015 folder whose frame 000001_10 has disp_occ_0 but no disp_noc_0.
+
+    Frame 000002_10 has images and no ground truth at all. Files link to the shared data.
+    """
+    shared = data_dir / 'kitti2015' / 'training'
+    training = tmp_path / 'kitti2015' / 'training'
+    for sub, stems in (('image_2', ('000001_10', '000002_10')),
+                       ('image_3', ('000001_10', '000002_10')), ('disp_occ_0', ('000001_10',))):
+        (training / sub).mkdir(parents=True)
+        for stem in stems:
+            (training / sub / f'{stem}.png').symlink_to(shared / sub / f'{stem}.png')
+    return tmp_path

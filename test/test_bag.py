@@ -253,7 +253,7 @@ def test_bad_input_bags_are_refused_without_output(tmp_path, params_file, capsys
         assert bag.main(['run', '--in', str(path), '--out', str(out),
                          '--params', str(params_file)]) != 0, case
         err = capsys.readouterr().err.strip().splitlines()[-1]
-        assert err.startswith('gcp-stereo-bag run: error: ') and REASONS[case] in err, (case, err)
+        assert err.startswith('gcp-stereo-bag: error: ') and REASONS[case] in err, (case, err)
         assert err.endswith(f'{out} not written'), err
         assert not out.exists(), case
     assert [p.name for p in tmp_path.iterdir() if 'partial' in p.name] == []

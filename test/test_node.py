@@ -112,7 +112,7 @@ def ros():
 
 @pytest.fixture
 def harness(ros, request, capfd):
-    overrides = {'max_disparity': MAX_DISP, 'theta': 0.9, **getattr(request, 'param', {})}
+    overrides = {'max_disparity': MAX_DISP, **getattr(request, 'param', {})}
     h = Harness(overrides, capfd)
     h.overrides = overrides
     yield h
@@ -202,7 +202,7 @@ def test_exact_and_approximate_sync(harness, pair):
 
 def test_set_parameters_live(harness, pair):
     left, right = pair
-    ok = harness.set_params(theta=0.95, P1=6.0, P2=100.0, paths=8, downsample=2)
+    ok = harness.set_params(theta=0.6, P1=6.0, P2=100.0, paths=8, downsample=2)
     assert all(r.successful for r in ok)
     for values, reason in [
         ({'P2': 2.0}, 'P2'),
@@ -211,27 +211,31 @@ def test_set_parameters_live(harness, pair):
         ({'cost': 'ncc'}, 'cost'),
         ({'weights': '/no/such/weights.pt'}, '/no/such/weights.pt'),
         ({'window': 10}, 'window'),
+        ({'bf16': 'maybe'}, 'bf16'),
         ({'downsample': 3}, 'downsample'),
         ({'device': 'cuda:7'}, "device 'cuda:7'"),
     ]:
         (result,) = harness.set_params(**values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
-    assert harness.node.get_parameter('theta').value == 0.95
+    assert harness.node.get_parameter('theta').value == 0.6
+    for bf16 in (True, 'auto', False):  # true, false or 'auto': one parameter, two types
+        assert all(r.successful for r in harness.set_params(bf16=bf16))
+        assert harness.node.params.pipeline.config.bf16 == bf16
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity after set')
-    overrides = {**harness.overrides, 'theta': 0.95, 'P1': 6.0, 'P2': 100.0, 'paths': 8,
-                 'downsample': 2}
+    overrides = {**harness.overrides, 'theta': 0.6, 'P1': 6.0, 'P2': 100.0, 'paths': 8,
+                 'bf16': False, 'downsample': 2}
     want, result = expected(overrides, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
     np.testing.assert_array_equal(image_to_array(harness.gcp[-1]),
                                   result.gcp.astype(np.uint8) * 255)
 
-    # Switching cost loads SAD's paper defaults; values set after it (SetParameters applies a
+    # Switching cost loads SAD's defaults; values set after it (SetParameters applies a
     # request in order) or in the same atomic request are kept.
     assert all(r.successful for r in harness.set_params(cost='sad', P2=20.0))
     values = {n: harness.node.get_parameter(n).value
               for n in ('theta', 'P1', 'P2', 'c_hi', 'c_low')}
-    assert values == {'theta': 0.55, 'P1': 1.0, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
+    assert values == {'theta': 0.3, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
     harness.send_pair(left, right, 'rgb8', 8_000_000_000)
     wait_for(lambda: stamp_of(harness.disparity[-1]) == 8_000_000_000,
              'disparity after cost switch')

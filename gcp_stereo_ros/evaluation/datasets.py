@@ -13,15 +13,18 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-LAYOUTS = ('KITTI 2012 (training/image_0, image_1, disp_noc)',
-           'KITTI 2015 (training/image_2, image_3, disp_noc_0)',
+LAYOUTS = ('KITTI 2012 (training/image_0, image_1, disp_noc or disp_occ)',
+           'KITTI 2015 (training/image_2, image_3, disp_noc_0 or disp_occ_0)',
            'Middlebury v2 (imL.png, imR.png, groundtruth.png, nonocc.png, info.txt)',
            'Middlebury 2003 (im2.png, im6.png, disp2.png)',
            'Middlebury 2006 (view1.png, view5.png, disp1.png)',
+           'Middlebury 2014 MiddEval3 / ETH3D two-view (im0.png, im1.png, disp0GT.pfm)',
            'OpenCV-doc Aloe (<name>L.*, <name>R.*, <name>GT.png)')
 
-# (left dir, right dir, GT dir, left camera, right camera) of the KITTI training folder.
-_KITTI = (('image_0', 'image_1', 'disp_noc', 0, 1), ('image_2', 'image_3', 'disp_noc_0', 2, 3))
+# (left dir, right dir, (non-occluded GT dir, all-pixels GT dir), left camera, right camera)
+# of the KITTI training folder. A frame is scored on its non-occluded GT when it has one.
+_KITTI = (('image_0', 'image_1', ('disp_noc', 'disp_occ'), 0, 1),
+          ('image_2', 'image_3', ('disp_noc_0', 'disp_occ_0'), 2, 3))
 _KITTI_MAX_DISP = 128
 
 
@@ -38,6 +41,9 @@ class Frame:
     gt_right: np.ndarray | None = None
     focal_px: float | None = None
     baseline_m: float | None = None
+    # How the scoring departs from the benchmark's own, for reports (e.g. occluded pixels
+    # included because the frame has no non-occluded ground truth); None when it does not.
+    note: str | None = None
 
 
 def list_frames(source):
@@ -87,10 +93,18 @@ def _scene(folder, rel, files):
     """{name: loader} for `folder` if it is a scene of a supported layout, else {}."""
     for training in (folder / 'training', folder):
         for kind in _KITTI:
-            if all((training / d).is_dir() for d in kind[:3]):
-                stems = sorted(p.stem for p in (training / kind[0]).glob('*_10.png'))
-                return {f'{rel}/{s}': functools.partial(_kitti, training, f'{rel}/{s}', s, kind)
-                        for s in stems}
+            left, right, gt_dirs = kind[:3]
+            if ((training / left).is_dir() and (training / right).is_dir()
+                    and any((training / d).is_dir() for d in gt_dirs)):
+                frames = {}
+                for image in sorted((training / left).glob('*_10.png')):
+                    gt = next((training / d / image.name for d in gt_dirs
+                               if (training / d / image.name).is_file()), None)
+                    if gt is not None:  # frames without ground truth are not listed
+                        name = f'{rel}/{image.stem}'
+                        frames[name] = functools.partial(_kitti, training, name, image.stem,
+                                                         kind, gt)
+                return frames
     if {'imL.png', 'imR.png', 'groundtruth.png', 'nonocc.png', 'info.txt'} <= files:
         return {rel: functools.partial(_middlebury_v2, folder, rel)}
     if {'im2.png', 'im6.png', 'disp2.png'} <= files:
@@ -101,6 +115,8 @@ def _scene(folder, rel, files):
         scale = 2 if 'halfsize' in parts else 3 if 'thirdsize' in parts else 1
         return {rel: functools.partial(_middlebury_pair, folder, rel, 'view1', 'view5', 'disp1',
                                        'disp5', scale)}
+    if {'im0.png', 'im1.png', 'disp0GT.pfm'} <= files:
+        return {rel: functools.partial(_middeval3, folder, rel)}
     gts = sorted(f for f in files if f.endswith('GT.png'))
     if gts:
         if len(gts) > 1:
@@ -125,6 +141,25 @@ def _gray8(path):
     return np.array(Image.open(path).convert('L'))
 
 
+def _pfm(path):
+    """float32 disparity of a one-channel PFM file (rows stored bottom first); inf -> NaN."""
+    with open(path, 'rb') as f:
+        try:
+            kind = f.readline().strip()
+            width, height = (int(v) for v in f.readline().split())
+            scale = float(f.readline())
+        except ValueError:
+            kind = None
+        if kind != b'Pf':
+            raise ValueError(f'{path}: not a one-channel PFM file (Pf, width height, scale)')
+        data = np.frombuffer(f.read(), '<f4' if scale < 0 else '>f4')
+    if data.size != width * height:
+        raise ValueError(f'{path}: {data.size} values for a {width}x{height} PFM image')
+    d = np.ascontiguousarray(np.flipud(data.reshape(height, width)), dtype=np.float32)
+    d[~np.isfinite(d)] = np.nan
+    return d
+
+
 def _disparity(raw, scale):
     """float32 disparity from stored values; 0 = unknown becomes NaN."""
     d = raw.astype(np.float32) / scale
@@ -137,12 +172,19 @@ def _above(gt):
     return 16 * (int(np.nanmax(gt)) // 16 + 1)
 
 
-def _frame(name, left, right, gt, valid, max_disp, gt_right=None, **extra):
-    for what, a in (('right image', right), ('ground truth', gt),
+def _up16(ndisp):
+    """Round a dataset's number of disparities up to a multiple of 16."""
+    return -(-ndisp // 16) * 16
+
+
+def _frame(name, left, right, gt, max_disp, mask=None, gt_right=None, **extra):
+    """Check the shapes; pixels scored (`valid`) have ground truth and are in `mask`, if any."""
+    for what, a in (('right image', right), ('ground truth', gt), ('mask', mask),
                     ('right ground truth', gt_right)):
         if a is not None and a.shape[:2] != left.shape[:2]:
             raise ValueError(f'{name}: {what} is {a.shape[:2]} '
                              f'but left image is {left.shape[:2]}')
+    valid = np.isfinite(gt) if mask is None else np.isfinite(gt) & mask
     return Frame(name, left, right, gt, valid, max_disp, gt_right, **extra)
 
 
@@ -150,16 +192,19 @@ def _motorcycle():
     from skimage.data import stereo_motorcycle
     left, right, gt = stereo_motorcycle()
     gt = np.where(np.isfinite(gt), gt, np.nan).astype(np.float32)
-    return _frame('motorcycle', left, right, gt, np.isfinite(gt), 64)
+    return _frame('motorcycle', left, right, gt, 64)
 
 
-def _kitti(training, name, stem, kind):
-    left, right, gt_dir, *cams = kind
-    gt = _disparity(np.array(Image.open(training / gt_dir / f'{stem}.png')), 256.0)
+def _kitti(training, name, stem, kind, gt_path):
+    left, right, (noc, _), *cams = kind
+    gt = _disparity(np.array(Image.open(gt_path)), 256.0)
     focal, baseline = _kitti_calib(training, stem.split('_')[0], cams)
+    occ = gt_path.parent.name
     return _frame(name, _image(training / left / f'{stem}.png'),
-                  _image(training / right / f'{stem}.png'), gt, np.isfinite(gt), _KITTI_MAX_DISP,
-                  focal_px=focal, baseline_m=baseline)
+                  _image(training / right / f'{stem}.png'), gt, _KITTI_MAX_DISP,
+                  focal_px=focal, baseline_m=baseline,
+                  note=None if occ == noc else f'scored on {occ} (occluded pixels included): '
+                                               f'no {noc}/{stem}.png')
 
 
 def _kitti_calib(training, frame_id, cams):
@@ -182,9 +227,8 @@ def _middlebury_v2(folder, name):
                          'expected the scale and the number of disparities')
     scale, ndisp = float(lines[0]), int(lines[1])
     gt = _disparity(_gray8(folder / 'groundtruth.png'), scale)
-    valid = np.isfinite(gt) & (_gray8(folder / 'nonocc.png') == 255)
-    return _frame(name, _image(folder / 'imL.png'), _image(folder / 'imR.png'), gt, valid,
-                  -(-ndisp // 16) * 16)
+    return _frame(name, _image(folder / 'imL.png'), _image(folder / 'imR.png'), gt, _up16(ndisp),
+                  mask=_gray8(folder / 'nonocc.png') == 255)
 
 
 def _middlebury_pair(folder, name, left, right, gt_left, gt_right, scale):
@@ -194,11 +238,41 @@ def _middlebury_pair(folder, name, left, right, gt_left, gt_right, scale):
     gt = _disparity(_gray8(folder / f'{gt_left}.png'), scale)
     gt_r = folder / f'{gt_right}.png'
     gt_r = _disparity(_gray8(gt_r), scale) if gt_r.is_file() else None
-    return _frame(name, left, _image(folder / f'{right}.png'), gt, np.isfinite(gt), _above(gt),
-                  gt_right=gt_r)
+    return _frame(name, left, _image(folder / f'{right}.png'), gt, _above(gt), gt_right=gt_r)
+
+
+def _middeval3(folder, name):
+    """
+    Middlebury 2014 (MiddEval3) and ETH3D two-view scenes.
+
+    Scored on mask0nocc.png == 255 (non-occluded) when present; max_disp is calib.txt's ndisp
+    rounded up to a multiple of 16, or from the ground truth without one.
+    """
+    gt = _pfm(folder / 'disp0GT.pfm')
+    mask_path, gt_r = folder / 'mask0nocc.png', folder / 'disp1GT.pfm'
+    mask = _gray8(mask_path) == 255 if mask_path.is_file() else None
+    ndisp = _ndisp(folder / 'calib.txt')
+    notes = ([] if mask is not None else
+             ['no mask0nocc.png: scored on every pixel with ground truth, occluded ones included'])
+    if ndisp is None:
+        notes.append('no ndisp in calib.txt: max_disp from the largest ground-truth disparity')
+    return _frame(name, _image(folder / 'im0.png'), _image(folder / 'im1.png'), gt,
+                  _above(gt) if ndisp is None else _up16(ndisp), mask=mask,
+                  gt_right=_pfm(gt_r) if gt_r.is_file() else None, note='; '.join(notes) or None)
+
+
+def _ndisp(path):
+    """Return `ndisp=` of a Middlebury or ETH3D calib.txt; None without the file or the key."""
+    lines = path.read_text().splitlines() if path.is_file() else []
+    for key, _, value in (line.partition('=') for line in lines):
+        if key.strip() == 'ndisp':
+            try:
+                return int(value)
+            except ValueError:
+                raise ValueError(f'{path}: ndisp={value.strip()} is not an integer') from None
+    return None
 
 
 def _aloe(folder, name, left, right, gt):
     gt = _disparity(_gray8(folder / gt), 1.0)
-    return _frame(name, _image(folder / left), _image(folder / right), gt, np.isfinite(gt),
-                  _above(gt))
+    return _frame(name, _image(folder / left), _image(folder / right), gt, _above(gt))

@@ -10,7 +10,7 @@ from ..stereo.pipeline import StereoPipeline
 
 def descriptor(param):
     """Describe a `params.Param` for ROS: its description and range."""
-    desc = ParameterDescriptor(description=param.description)
+    desc = ParameterDescriptor(description=param.description, dynamic_typing=param.dynamic)
     if param.range is not None:
         low, high, step = param.range
         if isinstance(param.default, int):

@@ -21,6 +21,7 @@ import time
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import Image, RegionOfInterest
 from stereo_msgs.msg import DisparityImage
 
@@ -142,18 +143,28 @@ class GcpStereoNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    try:
-        node = GcpStereoNode()
-    except Exception as err:  # invalid start-up parameters: one line, no traceback
-        print(f'{NODE_NAME}: cannot start: {err}', file=sys.stderr)
-        rclpy.try_shutdown()
+    extra = remove_ros_args(sys.argv if args is None else args)[1:]
+    if extra and extra[0] in ('-h', '--help'):
+        print(__doc__.strip())
+        return 0
+    if extra:  # ROS arguments go after --ros-args; anything else is a mistake
+        print(f'{NODE_NAME}: error: unrecognized arguments: {" ".join(extra)} '
+              '(parameters go after --ros-args, e.g. --ros-args -p max_disparity:=192)',
+              file=sys.stderr)
         return 2
+    rclpy.init(args=args)
+    node = None
     try:
+        try:
+            node = GcpStereoNode()
+        except Exception as err:  # invalid start-up parameters: one line, no traceback
+            print(f'{NODE_NAME}: error: cannot start: {err}', file=sys.stderr)
+            return 2
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        pass  # Ctrl-C or shutdown, while starting or spinning
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
     return 0

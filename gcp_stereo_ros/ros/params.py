@@ -23,6 +23,7 @@ class Param:
     field: str | None = None  # StereoConfig field; None = node-only (sync, logging)
     # (low, high, step) for numbers; step 0 = continuous
     range: tuple | None = None  # noqa: A003 (read elsewhere as p.range, so keep the name)
+    dynamic: bool = False  # takes values of more than one type (bf16: true, false or 'auto')
 
 
 _D = StereoConfig()
@@ -40,7 +41,9 @@ PARAMS = (
     Param('paths', _D.paths, 'SGM path directions: 4, 8 or 16', 'paths', (4, 16, 4)),
     Param('use_gcp', _D.use_gcp, 'refine the cost volume with CNN ground control points',
           'use_gcp'),
-    Param('theta', _D.theta, 'GCP threshold on the CNN confidence in [0, 1]',
+    Param('theta', _D.theta,
+          'GCP threshold on the calibrated CNN confidence: the probability that the '
+          "pixel's CNN disparity is within 1 px of the truth",
           'theta', (0.0, 1.0, 0.0)),
     Param('c_hi', _D.c_hi, 'cost given to every disparity of a non-GCP pixel',
           'c_hi', (0.0, 10000.0, 0.0)),
@@ -52,8 +55,8 @@ PARAMS = (
           "CNN weights file ('' = the weights shipped with the package)", 'weights'),
     Param('device', _D.device,
           "'cpu', or 'cuda' / 'cuda:N' to run the whole pipeline on that GPU", 'device'),
-    Param('bf16', _D.bf16, 'bfloat16 CNN descriptors (CPUs with avx512_bf16 or AMX, CUDA)',
-          'bf16'),
+    Param('bf16', _D.bf16, "bfloat16 CNN descriptors: true, false or 'auto' (on where native: "
+          'CPUs with avx512_bf16 or AMX, CUDA)', 'bf16', dynamic=True),
     Param('subpixel', _D.subpixel, 'parabola fit for sub-pixel disparities', 'subpixel'),
     Param('lr_check', _D.lr_check,
           'left-right consistency check (invalid pixels published as -1)', 'lr_check'),

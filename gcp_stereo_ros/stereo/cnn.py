@@ -21,7 +21,15 @@ pair: bf16 convolutions 0.79 s for the whole images, 0.54 s in strips of 64 rows
 descriptors of the whole images are never held (2 x 119 MB for a KITTI pair in float32).
 On a GPU (`device_confidence`) the same strips are correlated in torch on the device, as
 batched matrix products over blocks of columns (`_band_best`).
+
+Calibration: the raw cosine is high almost everywhere (most pixels score above 0.9), so a
+threshold on it says little. The weights file carries a monotone map, fitted on validation
+frames by the training tool, from the raw cosine to the probability that the CNN disparity
+is within 1 px of the truth; `confidence` returns that probability, so theta = 0.6 keeps
+the pixels whose CNN disparity is right with probability above 60 %. Weights without a map
+give the raw cosine.
 """
+import functools
 from pathlib import Path
 import time
 
@@ -88,7 +96,47 @@ def load_net(path=None, device='cpu'):
         raise ValueError(f'GCP CNN weights file {path} is corrupt or not a GcpNet checkpoint: '
                          f'{e}') from e
     net.meta = blob.get('meta', {})
+    net.calibration = _calibration(blob.get('calibration'), path)
     return net.to(device).eval()
+
+
+def _calibration(stored, path):
+    """
+    Return the (cosine, probability) knots of a weights file's calibration, or None.
+
+    Raises ValueError unless both are finite 1-D float arrays of one length >= 2, the cosines
+    strictly increasing and the probabilities non-decreasing in [0, 1].
+    """
+    if stored is None:
+        return None
+    try:
+        x, y = (np.asarray(stored[k], np.float64) for k in ('cosine', 'probability'))
+        ok = (x.ndim == y.ndim == 1 and len(x) == len(y) >= 2 and np.isfinite(x).all()
+              and np.isfinite(y).all() and (np.diff(x) > 0).all() and (np.diff(y) >= 0).all()
+              and y[0] >= 0 and y[-1] <= 1)
+    except (KeyError, TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f'GCP CNN weights file {path}: invalid confidence calibration')
+    return x, y
+
+
+def calibrated(net, cosine):
+    """
+    Map raw cosines through the net's calibration (identity without one), as float32.
+
+    `cosine`: a numpy array, or a tensor (mapped on its device as np.interp does, in float64).
+    """
+    knots = getattr(net, 'calibration', None)
+    if knots is None:
+        return cosine
+    if not isinstance(cosine, torch.Tensor):
+        return np.interp(cosine, *knots).astype(np.float32)
+    xp, fp = (torch.as_tensor(k, dtype=torch.float64, device=cosine.device) for k in knots)
+    x = cosine.double()
+    j = (torch.searchsorted(xp, x, right=True) - 1).clamp_(0, len(xp) - 2)
+    y = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]) * (x - xp[j]) + fp[j]
+    return torch.where(x <= xp[0], fp[0], torch.where(x >= xp[-1], fp[-1], y)).float()
 
 
 @njit(inline='always', fastmath=True)
@@ -171,6 +219,23 @@ def _volume(bits, shift, vol):
                 vol[y, x, d] = _dot(f[0, x], f[1, x - d]) if d <= x else np.float32(0.0)
 
 
+@functools.cache
+def bf16_native(device='cpu'):
+    """
+    Tell whether bfloat16 convolutions run natively on `device` (what bf16 'auto' uses).
+
+    True on CUDA devices with bfloat16 support and on CPUs with avx512_bf16 or AMX (read
+    from /proc/cpuinfo); elsewhere torch emulates bfloat16, slower than float32.
+    """
+    if torch.device(device).type == 'cuda':
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    try:
+        flags = Path('/proc/cpuinfo').read_text().split()
+    except OSError:
+        return False
+    return 'avx512_bf16' in flags or 'amx_bf16' in flags
+
+
 def network_input(*grays):
     """Return what the branch sees of gray images, each standardized on its own."""
     return padded_input(torch.from_numpy(np.stack([standardize(g) for g in grays])))
@@ -232,6 +297,7 @@ def device_confidence(net, x, max_disp, bf16=False, seconds=None):
     """
     h, w = x.shape[2] - 2 * PAD, x.shape[3] - 2 * PAD
     check_max_disp(max_disp, w)
+    bf16 = bf16_native(x.device) if bf16 == 'auto' else bf16
     cof_c = torch.empty((h, w), dtype=torch.float32, device=x.device)
     cof_d = torch.empty((h, w), dtype=torch.int32, device=x.device)
     cof_dr = torch.empty((h, w), dtype=torch.int32, device=x.device)
@@ -251,7 +317,7 @@ def device_confidence(net, x, max_disp, bf16=False, seconds=None):
             _synchronize(x.device)
             seconds['cnn'] += t1 - t
             seconds['confidence'] += time.perf_counter() - t1
-    return cof_c, cof_d, cof_dr
+    return calibrated(net, cof_c), cof_d, cof_dr
 
 
 def _synchronize(device):
@@ -266,21 +332,24 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     `left`/`right`: anything `images.gray_pair` accepts; each is standardized on its own.
     The convolutions run with torch on `device` ('cpu' or 'cuda[:N]'), both images as one
     batch (see `descriptors`); `bf16` turns on bfloat16 autocast (about 2x faster on CPUs
-    with AVX512-BF16). On the CPU the L2 normalization (float32) and the correlation run in
-    a numba kernel, strip by strip, streaming over d without materializing the volume; on a
-    GPU in torch there (`device_confidence`). `seconds`: a dict that gains the wall time of
-    the convolutions ('cnn') and of the correlation ('confidence').
+    with AVX512-BF16), 'auto' where `bf16_native(device)`. On the CPU the L2 normalization
+    (float32) and the correlation run in a numba kernel, strip by strip, streaming over d
+    without materializing the volume; on a GPU in torch there (`device_confidence`).
+    `seconds`: a dict that gains the wall time of the convolutions ('cnn') and of the
+    correlation ('confidence').
 
-    Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1], int32 (H, W)
+    Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1] mapped through the
+    net's calibration (`calibrated`; the raw cosine without one), int32 (H, W)
     argmax_d Vol, where Vol(y, x, d) = 0 for x - d < 0, and int32 (H, W) cof_dr, for each
     right pixel xr the argmax of Vol(y, xr + d, d) over d < min(max_disp, W - xr); first
-    maxima on ties. With `volume=True` also the float32 (H, W, max_disp) volume Vol
+    maxima on ties. With `volume=True` also the float32 (H, W, max_disp) raw-cosine volume Vol
     (memory-hungry; for tests and plots).
     """
     lg, rg = gray_pair(left, right)
     h, w = lg.shape
     check_max_disp(max_disp, w)
     max_disp = int(max_disp)
+    bf16 = bf16_native(device) if bf16 == 'auto' else bf16
     x = network_input(lg, rg).to(device)
     if x.device.type != 'cpu' and not volume:
         return tuple(a.cpu().numpy() for a in device_confidence(net, x, max_disp, bf16, seconds))
@@ -305,4 +374,5 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
             _volume(bits, shift, vol[y0:y1])
         seconds['cnn'] += t1 - t
         seconds['confidence'] += time.perf_counter() - t1
+    cof_c = calibrated(net, cof_c)
     return (cof_c, cof_d, cof_dr, vol) if volume else (cof_c, cof_d, cof_dr)

@@ -16,11 +16,22 @@ from .gcp import refine, select
 from .images import bin_area, gray_pair, mean_std, upsample
 from .sgm import aggregate, disparity, finish, path_sum_bound, PATHS
 
-# The paper's parameters for each matching cost (Zhong et al., section 4).
+# Defaults for each matching cost, chosen by cross-validation on the validation frames
+# (README: "Method and results"); theta is on the calibrated scale (cnn.calibrated).
 COST_DEFAULTS = {
-    'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3},
-    'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001},
+    'census': {'p1': 8.0, 'p2': 128.0, 'theta': 0.4, 'c_hi': 200.0, 'c_low': 10.0,
+               'gcp_lr_check': True},
+    'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.3, 'c_hi': 5.0, 'c_low': 0.001,
+            'gcp_lr_check': True},
 }
+# The paper's values (Zhong et al., section 4): its theta is read on our calibrated scale.
+PAPER = {
+    'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3,
+               'gcp_lr_check': False},
+    'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001,
+            'gcp_lr_check': False},
+}
+PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
 DOWNSAMPLE = (1, 2, 4)
 
 
@@ -37,10 +48,12 @@ class StereoConfig:
     c_hi: float = COST_DEFAULTS['census']['c_hi']
     c_low: float = COST_DEFAULTS['census']['c_low']
     # GCPs only where the right view's CNN disparity agrees (not in the paper).
-    gcp_lr_check: bool = False
+    gcp_lr_check: bool = COST_DEFAULTS['census']['gcp_lr_check']
     weights: str = ''  # '' = the weights shipped with the package
     device: str = 'cpu'
-    bf16: bool = False  # bfloat16 CNN descriptors (CPUs with avx512_bf16 / AMX, or CUDA)
+    # bfloat16 CNN descriptors: True, False or 'auto' (where native: CPUs with avx512_bf16
+    # or AMX, CUDA; see cnn.bf16_native).
+    bf16: bool | str = 'auto'
     subpixel: bool = False
     lr_check: bool = False
     median: bool = False
@@ -49,11 +62,13 @@ class StereoConfig:
     downsample: int = 1
 
     @classmethod
-    def for_cost(cls, cost, **overrides):
-        """Return a config with the paper's defaults for `cost`, then `overrides` applied."""
-        if cost not in COST_DEFAULTS:
+    def for_cost(cls, cost, preset='default', **overrides):
+        """Return a config with the `preset`'s values for `cost`, then `overrides` applied."""
+        if preset not in PRESETS:
+            raise ValueError(f'preset must be one of {tuple(PRESETS)}, got {preset!r}')
+        if cost not in PRESETS[preset]:
             raise ValueError(f'cost must be one of {tuple(COST_DEFAULTS)}, got {cost!r}')
-        return cls(**{'cost': cost, **COST_DEFAULTS[cost], **overrides}).validate()
+        return cls(**{'cost': cost, **PRESETS[preset][cost], **overrides}).validate()
 
     def replace(self, **changes):
         return dataclasses.replace(self, **changes).validate()
@@ -78,6 +93,8 @@ class StereoConfig:
                              f'got {self.theta}')
         if self.c_low > self.c_hi:
             raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
+        if self.bf16 not in (True, False, 'auto'):
+            raise ValueError(f"bf16 must be true, false or 'auto', got {self.bf16!r}")
         if not (self.device == 'cpu' or re.fullmatch(r'cuda(:\d+)?', self.device)):
             raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
         if not (isinstance(self.downsample, (int, np.integer)) and not isinstance(

@@ -45,6 +45,7 @@ from rosbags.rosbag2.errors import WriterError
 from rosbags.typesys import get_typestore, Stores, TypesysError
 from tqdm import tqdm
 
+from .cli import console_main, positive
 from ..evaluation.datasets import list_frames, load_frames
 from ..evaluation.metrics import error_rates, THRESHOLDS
 from ..evaluation.viz import colorize, save_png
@@ -444,13 +445,6 @@ def play(args):
 
 
 # ---- command line -----------------------------------------------------------------------
-def _positive(text):
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f'must be > 0, got {text}')
-    return value
-
-
 def parser():
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -471,7 +465,7 @@ def parser():
     mk.add_argument('--storage', **storage)
     mk.add_argument('--out', required=True, type=Path, metavar='BAG',
                     help='bag to write (a directory)')
-    mk.add_argument('--rate', type=_positive, default=10.0, metavar='HZ',
+    mk.add_argument('--rate', type=positive, default=10.0, metavar='HZ',
                     help='frames per second (default 10)')
     mk.add_argument('--namespace', **namespace)
     mk.add_argument('--force', **force)
@@ -495,7 +489,7 @@ def parser():
                         help='publish a bag into the live ROS graph at its recorded timing')
     pl.add_argument('--in', dest='inp', required=True, type=Path, metavar='BAG',
                     help='bag directory, or its .mcap / .db3 file')
-    pl.add_argument('--rate', type=_positive, default=1.0, metavar='R',
+    pl.add_argument('--rate', type=positive, default=1.0, metavar='R',
                     help='speed factor (default 1)')
     pl.add_argument('--loop', action='store_true',
                     help='play again and again, with the recorded stamps '
@@ -506,18 +500,15 @@ def parser():
     return ap
 
 
+@console_main(PROG, errors=(WriterError, TypesysError))
 def main(argv=None):
     args = parser().parse_args(argv)
-    unwritten = f'; {args.out} not written' if args.command != 'play' else ''
     try:
         {'make': make, 'run': run, 'play': play}[args.command](args)
-    except (ValueError, OSError, WriterError, TypesysError) as err:
-        print(f'{PROG} {args.command}: error: {err}{unwritten}', file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f'{PROG} {args.command}: interrupted{unwritten}', file=sys.stderr)
-        return 130
-    return 0
+    except BaseException as err:
+        if args.command != 'play':
+            err.add_note(f'{args.out} not written')
+        raise
 
 
 if __name__ == '__main__':

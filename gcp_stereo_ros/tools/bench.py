@@ -6,23 +6,26 @@ stage runs once to warm up (Numba compilation, torch kernels), then `--repeat` t
 median is reported, with its ratio to OpenCV's time on the same images. Machines are noisy:
 read the ratios, not the absolute seconds.
 
-The default pipeline runs end to end on the CPU in fp32 and bf16 and with `downsample` 2
-and 4; with a CUDA GPU also on it (`device: cuda`, transfers included), with its stages
-as `cuda_<stage>`. Without one it says why and measures no CUDA figure.
+The default pipeline runs end to end on the CPU as is (bf16 'auto'), in fp32, in bf16, and with
+`downsample` 2 and 4; with a CUDA GPU also on it (`device: cuda`, transfers included), with
+its stages as `cuda_<stage>`. Without one it says why and measures no CUDA figure.
 """
 import argparse
 import json
 from pathlib import Path
 import resource
 import statistics
+import sys
 import time
 
 import cv2
 import numpy as np
 
+from .cli import console_main, positive_int
 from .evaluate import opencv_sgbm
 from ..evaluation.datasets import list_frames, load_frame
 from ..stereo import gpu
+from ..stereo.cnn import bf16_native
 from ..stereo.cost import cost_volume
 from ..stereo.images import gray_pair
 from ..stereo.pipeline import StereoConfig, StereoPipeline
@@ -65,14 +68,15 @@ def volume_stage_seconds(left, right, nd, repeat):
     return {name: median_seconds(fn, repeat) for name, fn in stages.items()}
 
 
+@console_main('gcp-stereo-bench')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--dataset', default='motorcycle',
                     help="dataset of the pair (default: 'motorcycle')")
     ap.add_argument('--frame', help='frame name in that dataset (default: the first)')
-    ap.add_argument('--max-disp', type=int, default=128)
-    ap.add_argument('--repeat', type=int, default=5)
+    ap.add_argument('--max-disp', type=positive_int, default=128)
+    ap.add_argument('--repeat', type=positive_int, default=5)
     ap.add_argument('--json', type=Path, help='write {"stages", "ratios", "peak_rss_mb"} here')
     args = ap.parse_args(argv)
 
@@ -83,26 +87,26 @@ def main(argv=None):
     print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, '
           f'repeat {args.repeat}')
     seconds = volume_stage_seconds(left, right, nd, args.repeat)
-    pipeline = StereoPipeline(StereoConfig.for_cost('census', max_disp=nd))
-    variants = {'pipeline': {}, 'pipeline_bf16': {'bf16': True},
+    pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
+    print(f"pipeline: the defaults, bf16 'auto' = {bf16_native(pipeline.config.device)} here")
+    variants = {'pipeline': {}, 'pipeline_fp32': {'bf16': False}, 'pipeline_bf16': {'bf16': True},
                 'pipeline_downsample2': {'downsample': 2},
                 'pipeline_downsample4': {'downsample': 4}}
     try:
         gpu.check_device('cuda')
         variants.update(cuda_pipeline={'device': 'cuda'},
-                        cuda_pipeline_bf16={'device': 'cuda', 'bf16': True})
+                        cuda_pipeline_fp32={'device': 'cuda', 'bf16': False})
     except ValueError as err:
         print(f'CUDA stages not measured: {err}')
     breakdown = {}
     for name, changes in variants.items():
         pipe = pipeline.with_config(pipeline.config.replace(**changes))
         seconds[name], breakdown[name] = median_pipeline(pipe, left, right, args.repeat)
-        suffix = '_bf16' if changes.get('bf16') else ''
-        if changes.get('device'):  # every CUDA stage: upload, cnn, ..., download
-            seconds.update({f'cuda_{k}{suffix}': v for k, v in breakdown[name].items()})
-        elif name in ('pipeline', 'pipeline_bf16'):
+        if name == 'cuda_pipeline':  # every CUDA stage: upload, cnn, ..., download
+            seconds.update({f'cuda_{k}': v for k, v in breakdown[name].items()})
+        elif name in ('pipeline', 'pipeline_fp32', 'pipeline_bf16'):
             for stage in ('cnn', 'confidence', 'refine'):
-                seconds[stage + suffix] = breakdown[name][stage]
+                seconds[stage + name[len('pipeline'):]] = breakdown[name][stage]
     peer = seconds['opencv_sgbm_hh']
     ratios = {name: s / peer for name, s in seconds.items() if name != 'opencv_sgbm_hh'}
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -111,7 +115,7 @@ def main(argv=None):
         print(f'{name:<24}{s:9.3f}{ratios.get(name, 1.0):13.2f}')
     print(f'peak RSS {peak:.0f} MB')
     for name, stage_seconds in breakdown.items():
-        print(f'{name} = Census+GCP+SGM (16 paths) end to end, {variants[name] or "defaults"}; '
+        print(f'{name} = default Census+GCP+SGM end to end, {variants[name] or "as is"}; '
               'median of its stages:',
               ', '.join(f'{k} {v:.3f} s' for k, v in stage_seconds.items()))
     if args.json:
@@ -120,4 +124,4 @@ def main(argv=None):
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -17,13 +17,14 @@ import time
 
 import numpy as np
 
+from .cli import console_main
 from ..evaluation.datasets import load_frame
 from ..evaluation.metrics import error_rates
 from ..evaluation.viz import colorize, save_png
 from ..ros.graph import package_file, peer_graph
 from ..stereo.images import mask_image
 
-SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
+SHARED = Path(__file__).resolve().parents[3] / 'shared' / 'data'
 
 
 def frames_to_show():
@@ -35,15 +36,20 @@ def frames_to_show():
 
 
 def run(cmd):
-    subprocess.run([sys.executable, '-m', *cmd], check=True, env=os.environ)
+    """Run `python -m <cmd>`; a failure (reported by the child itself) raises."""
+    status = subprocess.run([sys.executable, '-m', *cmd], env=os.environ).returncode
+    if status:
+        raise ChildProcessError(f'{" ".join(cmd[:2])} exited with status {status}')
 
 
+@console_main('gcp-stereo-demo')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-demo', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--out', type=Path, default=Path('out'))
     args = ap.parse_args(argv)
     frames = frames_to_show()
+    args.out.mkdir(parents=True, exist_ok=True)
     bags = args.out / 'bags'
     shutil.rmtree(bags, ignore_errors=True)
     for i, (dataset, name) in enumerate(frames):
@@ -52,7 +58,7 @@ def main(argv=None):
 
     rows = []
     with peer_graph('gcp_stereo_demo',
-                    params_file=package_file('config/gcp_stereo_tuned.yaml')) as (peer, node):
+                    params_file=package_file('config/gcp_stereo.yaml')) as (peer, node):
         from sensor_msgs.msg import Image
         from stereo_msgs.msg import DisparityImage
 
@@ -67,7 +73,7 @@ def main(argv=None):
             deadline = time.monotonic() + 120
             while min(len(v) for v in got.values()) <= i:
                 if time.monotonic() > deadline or node.poll() is not None:
-                    raise SystemExit(f'no disparity from the node for {name}')
+                    raise TimeoutError(f'no disparity from the node for {name}')
                 time.sleep(0.05)
             frame = load_frame(dataset, name)
             disp_msg = got['disparity'][i]
@@ -90,4 +96,4 @@ def main(argv=None):
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

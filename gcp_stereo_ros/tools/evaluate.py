@@ -8,6 +8,7 @@ import argparse
 import fnmatch
 import json
 from pathlib import Path
+import sys
 import time
 
 import cv2
@@ -15,13 +16,15 @@ import numpy as np
 from tqdm import tqdm
 import yaml
 
+from .cli import console_main, positive_int
 from ..evaluation.datasets import list_frames, load_frame
 from ..evaluation.metrics import error_rates
 from ..evaluation.viz import colorize, save_png
 from ..stereo.images import gray_pair
-from ..stereo.pipeline import StereoConfig, StereoPipeline
+from ..stereo.pipeline import PRESETS, StereoConfig, StereoPipeline
 
 METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
+FIELDS = sorted(StereoConfig.__dataclass_fields__)  # the parameters --set may override
 
 
 def opencv_sgbm(left, right, max_disp, block=5):
@@ -47,28 +50,28 @@ def opencv_sgbm(left, right, max_disp, block=5):
     return disp
 
 
-def method_config(method, max_disp, paths=16, overrides=None):
-    """
-    Return the StereoConfig of a pipeline method ('sad', 'census+gcp', ...).
-
-    The cost's defaults, with `overrides` (a dict of StereoConfig fields) applied on top.
-    """
-    cost, _, gcp = method.partition('+')
-    return StereoConfig.for_cost(cost, use_gcp=bool(gcp), max_disp=max_disp, paths=paths,
-                                 **(overrides or {}))
-
-
 class Runner:
     """Runs any method of METHODS on frames, sharing one loaded CNN."""
 
-    def __init__(self, paths=16, overrides=None):
+    def __init__(self, paths=16, overrides=None, preset='default'):
         self.paths = paths
         self.overrides = dict(overrides or {})
-        self._pipeline = StereoPipeline(method_config('census', 16, paths, self.overrides))
+        self.preset = preset
+        self._pipeline = StereoPipeline(self.config('census', 16))
+
+    def config(self, method, max_disp, point=None):
+        """
+        Return the StereoConfig of a pipeline method ('sad', 'census+gcp', ...).
+
+        The preset's values for the cost ('default' or 'paper'), then the overrides (a dict
+        of StereoConfig fields), then those of a sweep's grid `point`.
+        """
+        cost, _, gcp = method.partition('+')
+        return StereoConfig.for_cost(cost, self.preset, use_gcp=bool(gcp), max_disp=max_disp,
+                                     paths=self.paths, **{**self.overrides, **(point or {})})
 
     def pipeline(self, method, max_disp):
-        self._pipeline = self._pipeline.with_config(
-            method_config(method, max_disp, self.paths, self.overrides))
+        self._pipeline = self._pipeline.with_config(self.config(method, max_disp))
         return self._pipeline
 
     def run(self, method, left, right, max_disp):
@@ -96,7 +99,7 @@ def select_frames(sources, patterns):
         picked = [n for n in names if not patterns or any(fnmatch.fnmatch(n, p) for p in patterns)]
         chosen += [(source, n) for n in picked]
     if not chosen:
-        raise SystemExit(f'no frame in {sources} matches {patterns}')
+        raise ValueError(f'no frame in {sources} matches {patterns}')
     return chosen
 
 
@@ -116,17 +119,20 @@ def table(rows, methods, key='bad3'):
 
 def parse_overrides(items):
     """`KEY=VALUE` strings (VALUE parsed as YAML) into a dict of StereoConfig fields."""
-    fields = set(StereoConfig.__dataclass_fields__)
     out = {}
     for item in items or []:
         key, sep, value = item.partition('=')
-        if not sep or key not in fields:
-            raise SystemExit(f'--set expects KEY=VALUE with KEY among {sorted(fields)}, '
+        if not sep or key not in FIELDS:
+            raise ValueError(f'--set expects KEY=VALUE with KEY among {FIELDS}, '
                              f'got {item!r}')
-        out[key] = yaml.safe_load(value)
+        try:
+            out[key] = yaml.safe_load(value)
+        except yaml.YAMLError:
+            raise ValueError(f'--set {item!r}: VALUE is not a YAML scalar') from None
     return out
 
 
+@console_main('gcp-stereo-eval')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -136,23 +142,28 @@ def main(argv=None):
     ap.add_argument('--frames', nargs='+', help='frame names or shell patterns (default: all)')
     ap.add_argument('--methods', nargs='+', default=['sad', 'census', 'opencv-sgbm'],
                     choices=METHODS)
-    ap.add_argument('--max-disp', type=int,
+    ap.add_argument('--max-disp', type=positive_int,
                     help="disparities searched (default: each frame's own)")
     ap.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
+    ap.add_argument('--preset', default='default', choices=tuple(PRESETS),
+                    help='parameter values before --set: the cross-validated defaults or '
+                         "the paper's (Table 1's paper rows)")
     ap.add_argument('--set', action='append', metavar='KEY=VALUE',
                     help='override a pipeline parameter (e.g. theta=0.7, bf16=true); repeatable')
     ap.add_argument('--json', type=Path, help='write one row per (method, frame) to this file')
     ap.add_argument('--out', type=Path, help='write colour-mapped disparity PNGs here')
     args = ap.parse_args(argv)
 
-    runner = Runner(args.paths, parse_overrides(args.set))
-    rows = []
+    runner = Runner(args.paths, parse_overrides(args.set), args.preset)
+    rows, notes = [], {}
     frames = select_frames(args.dataset, args.frames)
     with tqdm(total=len(frames) * len(args.methods), unit='run', leave=False) as bar:
         for source, name in frames:
             frame = load_frame(source, name)
             if frame.gt is None:
-                raise SystemExit(f'frame {name} has no ground truth to evaluate against')
+                raise ValueError(f'frame {name} has no ground truth to evaluate against')
+            if frame.note:
+                notes[name] = frame.note
             max_disp = args.max_disp or frame.max_disp
             for method in args.methods:
                 bar.set_description(f'{method} {name}')
@@ -164,11 +175,12 @@ def main(argv=None):
                              colorize(disp, max_disp))
                 bar.update()
     print(table(rows, args.methods))
+    for name, note in notes.items():
+        print(f'note: {name}: {note}')
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(rows, indent=1))
-    return rows
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -10,9 +10,11 @@ import argparse
 import json
 from pathlib import Path
 import statistics
+import sys
 import threading
 import time
 
+from .cli import console_main, positive
 from ..evaluation.datasets import list_frames, load_frame
 from ..ros.graph import peer_graph
 from ..ros.messages import stamp_ns
@@ -26,20 +28,30 @@ def rss_mb(pid):
     return float('nan')
 
 
+def node_param(text):
+    """Argparse type: `NAME:=VALUE` -> (NAME, VALUE)."""
+    name, sep, value = text.partition(':=')
+    if not (name and sep):
+        raise argparse.ArgumentTypeError(f'expected NAME:=VALUE, got {text!r}')
+    return name, value
+
+
+@console_main('gcp-stereo-load')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-load', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--dataset', default='motorcycle')
     ap.add_argument('--frame', help='frame name (default: the first)')
-    ap.add_argument('--rate', type=float, default=30.0)
-    ap.add_argument('--seconds', type=float, default=60.0)
-    ap.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
+    ap.add_argument('--rate', type=positive, default=30.0)
+    ap.add_argument('--seconds', type=positive, default=60.0)
+    ap.add_argument('-p', '--param', action='append', default=[], type=node_param,
+                    metavar='NAME:=VALUE',
                     help='node parameter, as with --ros-args -p; repeatable')
     ap.add_argument('--json', type=Path)
     args = ap.parse_args(argv)
 
     frame = load_frame(args.dataset, args.frame or list_frames(args.dataset)[0])
-    params = {'max_disparity': frame.max_disp, **dict(p.split(':=', 1) for p in args.param)}
+    params = {'max_disparity': frame.max_disp, **dict(args.param)}
     with peer_graph('gcp_stereo_load', params) as (peer, node):
         report = _measure(args, frame, peer, node)
     for key, value in report.items():
@@ -81,11 +93,13 @@ def _measure(args, frame, peer, node):
 
     # Warm up (subscription matching, Numba and torch first calls) before measuring.
     deadline = time.monotonic() + 120
-    while not latency and time.monotonic() < deadline:
+    while not latency and time.monotonic() < deadline and node.poll() is None:
         publish(time.time_ns())
         time.sleep(1.0)
+    if node.poll() is not None:
+        raise ChildProcessError(f'the node exited with status {node.returncode}')
     if not latency:
-        raise SystemExit('the node produced no disparity within 120 s')
+        raise TimeoutError('the node produced no disparity within 120 s')
     with lock:
         sent.clear()
         latency.clear()
@@ -95,7 +109,7 @@ def _measure(args, frame, peer, node):
     while time.monotonic() - start < args.seconds:
         publish(time.time_ns())
         n += 1
-        if n % int(args.rate * 10) == 0:
+        if n % max(1, int(args.rate * 10)) == 0:
             rss.append(rss_mb(node.pid))
         time.sleep(max(0.0, start + n / args.rate - time.monotonic()))
     time.sleep(3.0)  # let the last frame through
@@ -109,4 +123,4 @@ def _measure(args, frame, peer, node):
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

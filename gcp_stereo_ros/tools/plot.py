@@ -11,11 +11,13 @@ import argparse
 import itertools
 import json
 from pathlib import Path
+import sys
 
 import matplotlib
 import numpy as np
 
-from .evaluate import method_config, parse_overrides, Runner, select_frames
+from .cli import console_main, positive_int
+from .evaluate import FIELDS, parse_overrides, Runner, select_frames
 from ..evaluation.datasets import load_frame
 from ..evaluation.metrics import error_rates
 from ..stereo.gcp import gcp_quality
@@ -29,13 +31,17 @@ def parse_grid(items):
     grid = {}
     for item in items:
         name, _, spec = item.partition('=')
-        if ':' in spec:
-            lo, hi, step = (float(v) for v in spec.split(':'))
-            values = [round(v, 6) for v in np.arange(lo, hi + step / 2, step)]
-        else:
-            values = [float(v) if '.' in v or 'e' in v else int(v) for v in spec.split(',')]
-        if not name or not values:
-            raise SystemExit(f'--grid expects NAME=LO:HI:STEP or NAME=V1,V2,..., got {item!r}')
+        try:
+            if ':' in spec:
+                lo, hi, step = (float(v) for v in spec.split(':'))
+                values = [round(v, 6) for v in np.arange(lo, hi + step / 2, step)]
+            else:
+                values = [float(v) if '.' in v or 'e' in v else int(v) for v in spec.split(',')]
+        except (ValueError, ZeroDivisionError):
+            values = []
+        if name not in FIELDS or not values:
+            raise ValueError(f'--grid expects NAME=LO:HI:STEP or NAME=V1,V2,... with NAME among '
+                             f'{FIELDS}, got {item!r}')
         grid[name] = values
     return grid
 
@@ -52,9 +58,9 @@ def sweep(args):
         for values in itertools.product(*grid.values()):
             point = dict(zip(grid, values))
             try:
-                config = method_config(args.method, max_disp, args.paths,
-                                       {**runner.overrides, **point})
-            except ValueError:  # e.g. P2 < P1: not a valid set-up, so not a candidate
+                config = runner.config(args.method, max_disp, point)
+            except ValueError as err:  # e.g. P2 < P1: not a valid set-up, so not a candidate
+                invalid = err
                 continue
             pipe = base.with_config(config)
             result = pipe(frame.left, frame.right, confidence=conf)
@@ -65,6 +71,8 @@ def sweep(args):
                 row['gcp_density'], row['gcp_accuracy'] = gcp_quality(
                     result.gcp, result.cof_d, frame.gt, frame.valid)
             rows.append(row)
+        if not rows:
+            raise ValueError(f'no point of the grid is a valid set-up: {invalid}')
         print(f'{name}: best ' + _best(rows, name, grid))
     frames = list(dict.fromkeys(r['frame'] for r in rows))
     means = {}
@@ -117,13 +125,16 @@ def _plot_sweep(rows, grid, best, method, path):
 
 
 def bars(args):
-    rows = json.loads(args.json.read_text())
-    frames = list(dict.fromkeys(r['frame'] for r in rows))
-    err = {(r['method'], r['frame']): r['bad3'] for r in rows}
+    try:
+        rows = json.loads(args.json.read_text())
+        frames = list(dict.fromkeys(r['frame'] for r in rows))
+        err = {(r['method'], r['frame']): r['bad3'] for r in rows}
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f'{args.json}: not a gcp-stereo-eval --json file ({e!r})') from None
     pairs = [(c, f'{c}+gcp') for c in ('sad', 'census')
              if all((m, f) in err for m in (c, f'{c}+gcp') for f in frames)]
     if not pairs:
-        raise SystemExit(f'{args.json} needs both a cost and its +gcp method on every frame')
+        raise ValueError(f'{args.json} needs both a cost and its +gcp method on every frame')
     fig, axes = plt.subplots(1, len(pairs), figsize=(max(6, 1.2 * len(frames)) * len(pairs), 4),
                              squeeze=False)
     for ax, (base, gcp) in zip(axes[0], pairs):
@@ -145,6 +156,7 @@ def bars(args):
     print(f'wrote {path}')
 
 
+@console_main('gcp-stereo-plot')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-plot', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -158,7 +170,7 @@ def main(argv=None):
                     help='StereoConfig field and its values, e.g. theta=0:1:0.05 or p2=64,128; '
                          'repeatable')
     sp.add_argument('--set', action='append', metavar='KEY=VALUE', help='fixed parameter override')
-    sp.add_argument('--max-disp', type=int)
+    sp.add_argument('--max-disp', type=positive_int)
     sp.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
     sp.add_argument('--out', type=Path, default=Path('out/plots'))
     sp.set_defaults(run=sweep)
@@ -171,4 +183,4 @@ def main(argv=None):
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

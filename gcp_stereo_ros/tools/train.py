@@ -19,22 +19,20 @@ as per-patch training at a small fraction of the cost. SGD with momentum, cosine
 rate decay over all steps, fixed seed (numpy generator for crops and offsets, torch for the
 initial weights).
 
-Fixed data split of the shipped weights (`gcp_stereo_ros/weights/gcp_cnn.pt`):
-  train: middlebury_v2/tsukuba, middlebury_v2/venus, middlebury_v2/teddy,
-         middlebury2006/halfsize/Cloth3, middlebury2006/fullsize_opencv-doc/Aloe
-  validate: middlebury_v2/cones (the same scene as middlebury2003/cones, so never train on that)
-  never seen: Middlebury 2014 Motorcycle (source `motorcycle`), kitti2012/000070_10.
-They came from (15 min on 2 shared cores; the command is also in the weights' meta):
-  python -m gcp_stereo_ros.tools.train --dataset ../shared/data --frames middlebury_v2/tsukuba
-    middlebury_v2/venus middlebury_v2/teddy middlebury2006/halfsize/Cloth3
-    middlebury2006/fullsize_opencv-doc/Aloe --val-frames middlebury_v2/cones
-    --val-thetas 0.9 0.95 0.98 0.99 --epochs 8 --samples-per-epoch 768 --batch-size 4
-    --lr 0.01 --momentum 0.9 --seed 0 --bf16 --threads 1 --out gcp_stereo_ros/weights/gcp_cnn.pt
+The data split of the shipped weights (`gcp_stereo_ros/weights/gcp_cnn.pt`) is
+config/cnn_split.yaml (`--split`): 33 KITTI 2015 road frames and 14 Middlebury scenes to
+train, 10 other KITTI 2015 frames and 4 Middlebury scenes of other families to validate.
+The README and the weights' meta hold the command that made them.
 
 Validation (each epoch, frames `--val-frames`): hinge loss over all valid pixels with
 offsets drawn from a fixed generator (seed 0, independent of `--seed`), and the GCP
-density/accuracy (`gcp.gcp_quality`) of `cnn.confidence` at `--val-thetas`, plus the
+density/accuracy (`gcp.gcp_quality`) of the raw cosine at `--val-thetas`, plus the
 accuracy of plain winner-takes-all (WTA) on all valid pixels.
+
+Calibration (after the last epoch, on the validation frames): an isotonic fit of the
+probability that the CNN disparity is within 1 px of the truth given the raw cosine,
+each frame weighted equally, stored in the weights file; `cnn.confidence` returns that
+probability, which is what theta thresholds.
 """
 import argparse
 from dataclasses import dataclass
@@ -46,7 +44,9 @@ import time
 import numpy as np
 import torch
 from tqdm import tqdm
+import yaml
 
+from .cli import console_main
 from ..evaluation.datasets import load_frames
 from ..stereo.cnn import confidence, GcpNet, network_input, PAD
 from ..stereo.gcp import gcp_quality, right_view_agrees
@@ -56,6 +56,8 @@ MARGIN = 0.2
 CROP = (32, 256)  # left pixels per crop (rows, columns)
 NEG_OFFSETS = (4, 8)
 LR_CHECK_PX = 1.0
+CALIBRATION_PX = 1.0  # the calibrated confidence is P(|CNN disparity - truth| <= 1 px)
+CALIBRATION_BINS = 400
 
 
 @dataclass
@@ -156,6 +158,48 @@ def validate(net, frames, thetas):
     return out
 
 
+def fit_calibration(cosine, correct, weight, bins=CALIBRATION_BINS):
+    """
+    Fit P(correct | cosine) as a non-decreasing step function (isotonic regression).
+
+    The samples are sorted by cosine and grouped into `bins` groups of equal count; pooling
+    adjacent violators then makes the weighted fraction correct non-decreasing. Returns the
+    knots (cosine, probability): the weighted mean cosine and fraction correct of each
+    pooled group, cosines strictly increasing (what `cnn.calibrated` interpolates).
+    """
+    order = np.argsort(cosine, kind='stable')
+    starts = np.unique(np.linspace(0, len(order), bins, endpoint=False).astype(np.int64))
+    w = weight[order]
+    groups = [np.add.reduceat(a, starts) for a in (w * correct[order], w, w * cosine[order])]
+    pooled = []  # [weighted correct, weight, weighted cosine] per block
+    for block in zip(*groups):
+        pooled.append(list(block))
+        while len(pooled) > 1 and pooled[-2][0] * pooled[-1][1] > pooled[-1][0] * pooled[-2][1]:
+            last = pooled.pop()
+            pooled[-1] = [a + b for a, b in zip(pooled[-1], last)]
+    x = np.array([c / w for _, w, c in pooled])
+    y = np.array([k / w for k, w, _ in pooled])
+    keep = np.append(np.diff(x) > 0, True)  # equal cosines: the later (higher) probability
+    return x[keep], y[keep]
+
+
+def calibration_samples(net, frames):
+    """
+    Return (cosine, correct, weight) over the evaluated pixels of `frames`.
+
+    cosine: the raw CNN confidence; correct: the CNN disparity within 1 px of the truth;
+    weight: 1 / (the frame's evaluated pixels), so that every frame counts the same.
+    """
+    net.calibration = None
+    out = []
+    for f in frames:
+        cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp)
+        sel = f.valid & np.isfinite(f.gt)
+        correct = np.abs(cof_d[sel] - f.gt[sel]) <= CALIBRATION_PX
+        out.append((cof_c[sel], correct.astype(np.float64), np.full(sel.sum(), 1.0 / sel.sum())))
+    return tuple(np.concatenate(a) for a in zip(*out))
+
+
 def _select(sources, names, what):
     """Frames `names` (default: every frame with GT) found in the `sources`."""
     found = {}
@@ -192,6 +236,9 @@ def parse_args(argv):
                    help='validation sources (default: the --dataset ones)')
     p.add_argument('--val-frames', nargs='+',
                    help='validation frame names (default: no validation)')
+    p.add_argument('--split', type=Path,
+                   help="YAML file with the frame names under 'train:' and 'validation:' "
+                        '(instead of --frames and --val-frames; e.g. config/cnn_split.yaml)')
     p.add_argument('--val-thetas', nargs='+', type=float, default=[0.5, 0.7, 0.8, 0.9])
     p.add_argument('--epochs', type=int, default=10)
     p.add_argument('--samples-per-epoch', type=int, default=2048, help='random crops per epoch')
@@ -214,9 +261,19 @@ def parse_args(argv):
             p.error(f'--{k.replace("_", "-")} must be at least 1')
     if args.lr <= 0 or not 0 <= args.momentum < 1:
         p.error('--lr must be positive and --momentum in [0, 1)')
+    if args.split:
+        if args.frames or args.val_frames:
+            p.error('--split replaces --frames and --val-frames')
+        try:
+            split = yaml.safe_load(args.split.read_text())
+            args.frames, args.val_frames = split['train'], split['validation']
+        except (OSError, yaml.YAMLError, KeyError, TypeError) as err:
+            p.error(f"--split {args.split}: expected YAML with 'train:' and 'validation:' "
+                    f'lists of frame names ({err})')
     return args
 
 
+@console_main('gcp-stereo-train')
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     args = parse_args(argv)
@@ -264,16 +321,32 @@ def main(argv=None):
                         'rng': rng.bit_generator.state, 'torch_rng': torch.get_rng_state(),
                         'history': history, 'seconds': seconds},
                        args.checkpoint_dir / f'epoch_{epoch:03d}.pt')
-    meta = {'command': shlex.join(['gcp-stereo-train', *argv]),
+    blob = {'state_dict': {k: v.contiguous() for k, v in net.state_dict().items()}}
+    if val_frames:
+        net.eval()
+        with torch.no_grad():
+            cosine, probability = fit_calibration(*calibration_samples(net, val_frames))
+        blob['calibration'] = {'cosine': torch.from_numpy(cosine),
+                               'probability': torch.from_numpy(probability)}
+        tqdm.write('calibration (raw cosine -> P(CNN disparity within 1 px)): ' + ', '.join(
+            f'{c:.3f} -> {p:.2f}' for c, p in zip(cosine[::len(cosine) // 12 or 1],
+                                                  probability[::len(cosine) // 12 or 1])))
+    command, rest = [], list(argv)  # resuming continues bit-identically: drop --resume
+    while rest:
+        arg = rest.pop(0)
+        if arg == '--resume':
+            rest.pop(0)
+        elif not arg.startswith('--resume='):
+            command.append(arg)
+    meta = {'command': shlex.join(['gcp-stereo-train', *command]),
             'train_frames': [f.name for f in train_frames],
             'val_frames': [f.name for f in val_frames], 'seed': args.seed, 'epochs': args.epochs,
             'bf16': args.bf16, 'seconds': seconds, 'torch': str(torch.__version__),
             'history': history}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({'state_dict': {k: v.contiguous() for k, v in net.state_dict().items()},
-                'meta': meta}, args.out)
+    torch.save({**blob, 'meta': meta}, args.out)
     tqdm.write(f'wrote {args.out} after {seconds:.0f} s of training')
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

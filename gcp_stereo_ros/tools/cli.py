@@ -1,0 +1,53 @@
+"""
+What every console script shares: its exit status, one-line errors and option types.
+
+A tool's `main(argv=None)` is decorated with `console_main(prog)`: it then returns 0 when
+`main` returns None, and an expected error (a missing or unreadable file, an unknown frame,
+a bad value: ValueError, OSError and the tool's own `errors`) becomes one line on stderr,
+`prog: error: message`, and exit status 1, as argparse reports bad options (status 2).
+Notes added to the error (`err.add_note`) end the line. Ctrl-C is `prog: interrupted`,
+status 130. Anything else is a bug and keeps its traceback.
+"""
+import argparse
+import functools
+import sys
+
+
+def console_main(prog, errors=()):
+    """Return a decorator making `main(argv=None)` a console-script entry (see the module)."""
+    def decorate(main):
+        @functools.wraps(main)
+        def entry(argv=None):
+            try:
+                status = main(argv)
+            except (ValueError, OSError, *errors) as err:
+                _report(f'{prog}: error: {err}', err)
+                return 1
+            except KeyboardInterrupt as err:
+                _report(f'{prog}: interrupted', err)
+                return 130
+            return 0 if status is None else status
+        return entry
+    return decorate
+
+
+def _report(line, err):
+    """Print `line` and the notes of `err` as one line on stderr."""
+    text = '; '.join([line, *getattr(err, '__notes__', ())])
+    print(' '.join(part.strip() for part in text.splitlines()), file=sys.stderr)
+
+
+def positive_int(text):
+    """Argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f'must be at least 1, got {text}')
+    return value
+
+
+def positive(text):
+    """Argparse type: a number > 0."""
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f'must be > 0, got {text}')
+    return value
