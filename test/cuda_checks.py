@@ -69,20 +69,29 @@ def test_cuda_gcp_refinement(crop, cnn, lr_check):
     np.testing.assert_array_equal(host(got), want)
 
 
-@pytest.mark.parametrize('paths, dtype', [
-    (4, np.uint16), (8, np.uint16), (16, np.uint16), (16, np.float32)])
-def test_cuda_sgm_and_wta(crop, paths, dtype):
-    """uint16 sums are exact; float32 ones, in the CPU's order, measured exact too."""
-    volume = cost.cost_volume(*crop, ND, 'census', 9, scale=10, dtype=dtype)
-    p1, p2 = 40, 640
+@pytest.mark.parametrize('paths, kind', [
+    (4, 'census'), (8, 'census'), (16, 'census'), (16, 'sad')])
+def test_cuda_sgm_and_wta(crop, paths, kind):
+    """
+    Check SGM and WTA against the CPU's.
+
+    uint16 Census path sums are exact; float32 SAD ones agree within rounding (measured
+    2.7e-5 at most: the CPU's compiler reassociates); the WTA on the same sums is exact.
+    """
+    if kind == 'census':
+        volume, p1, p2, top = cost.cost_volume(*crop, ND, scale=10, dtype=np.uint16), 40, 640, 800
+    else:
+        volume, p1, p2, top = cost.cost_volume(*crop, ND, 'sad'), 0.3, 1.7, None
     want = sgm.aggregate(volume, p1, p2, paths)
-    total = sgm_cuda.aggregate(on_gpu(volume)[0], p1, p2, paths, 800)
-    np.testing.assert_array_equal(host(total), want)
+    total = sgm_cuda.aggregate(on_gpu(volume)[0], p1, p2, paths, top)
+    if kind == 'census':
+        np.testing.assert_array_equal(host(total), want)
+    else:
+        np.testing.assert_allclose(host(total), want, rtol=1e-5)
     for subpixel, lr_check in ((False, False), (True, True)):
         disp, consistent = sgm_cuda.winners(total, subpixel, lr_check)
         got = sgm.finish(host(disp), host(consistent), False)
-        expected = sgm.disparity(want, subpixel, lr_check)
-        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(got, sgm.disparity(host(total), subpixel, lr_check))
         assert np.isnan(got).any() == lr_check
 
 

@@ -49,8 +49,7 @@ def summation_order(paths):
     Return all `paths` directions (dx, dy), in the order S adds up their L_r in each cell.
 
     The two horizontal paths, those from above as `directions` lists them, then their
-    opposites: the order of the sweeps below, which the CUDA twin keeps, so that float32
-    sums round alike.
+    opposites: the order of the sweeps below, which the CUDA twin keeps.
     """
     above = [d for d in directions(paths) if d[1] > 0]
     return [(1, 0), (-1, 0)] + above + [(-dx, -dy) for dx, dy in above]

@@ -7,7 +7,7 @@ border, computing L_r(p, .) over all d from the previous pixel's, which it keeps
 column of a small buffer, and adding it into S. The paths of one direction never share a
 pixel, so no two threads write one cell, and the directions run one after the other in
 `sgm.summation_order`, the CPU's order: S equals the CPU's exactly for uint16 volumes, and
-for float32 within float rounding (the CPU's compiler may reassociate its sums).
+for float32 within float rounding (the CPU's compiler reassociates some of its sums).
 The penalties and limits are the CPU's (`sgm.penalties`).
 """
 from numba import cuda, njit
