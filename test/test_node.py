@@ -235,7 +235,7 @@ def test_set_parameters_live(harness, pair):
     assert all(r.successful for r in harness.set_params(cost='sad', P2=20.0))
     values = {n: harness.node.get_parameter(n).value
               for n in ('theta', 'P1', 'P2', 'c_hi', 'c_low')}
-    assert values == {'theta': 0.3, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
+    assert values == {'theta': 0.45, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
     harness.send_pair(left, right, 'rgb8', 8_000_000_000)
     wait_for(lambda: stamp_of(harness.disparity[-1]) == 8_000_000_000,
              'disparity after cost switch')

@@ -19,9 +19,9 @@ from .sgm import aggregate, disparity, finish, path_sum_bound, PATHS
 # Defaults for each matching cost, chosen by cross-validation on the validation frames
 # (README: "Method and results"); theta is on the calibrated scale (cnn.calibrated).
 COST_DEFAULTS = {
-    'census': {'p1': 8.0, 'p2': 128.0, 'theta': 0.4, 'c_hi': 200.0, 'c_low': 10.0,
+    'census': {'p1': 8.0, 'p2': 128.0, 'theta': 0.3, 'c_hi': 200.0, 'c_low': 5.0,
                'gcp_lr_check': True},
-    'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.3, 'c_hi': 5.0, 'c_low': 0.001,
+    'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.45, 'c_hi': 5.0, 'c_low': 0.001,
             'gcp_lr_check': True},
 }
 # The paper's values (Zhong et al., section 4): its theta is read on our calibrated scale.
