@@ -33,6 +33,7 @@ setup(
             'gcp-stereo-train = gcp_stereo_ros.tools.train:main',
             'gcp-stereo-plot = gcp_stereo_ros.tools.plot:main',
             'gcp-stereo-bag = gcp_stereo_ros.tools.bag:main',
+            'gcp-stereo-batch = gcp_stereo_ros.tools.batch:main',
             'gcp-stereo-load = gcp_stereo_ros.tools.load:main',
             'gcp-stereo-demo = gcp_stereo_ros.tools.demo:main',
         ],

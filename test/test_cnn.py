@@ -184,7 +184,9 @@ def test_training_smoke_loss_falls(tsukuba):
         rng = np.random.default_rng(0)
         net = GcpNet()
         optimizer = torch.optim.SGD(net.parameters(), lr=0.01, momentum=0.9)
-        losses = np.array([train.train_step(net, optimizer, [view], rng, 1) for _ in range(200)])
+        model = train.CropLoss(net)
+        losses = np.array([train.train_step(model, optimizer, [view], rng, 1)
+                           for _ in range(200)])
     finally:
         torch.set_num_threads(threads)
     first, last = losses[:50].mean(), losses[-50:].mean()

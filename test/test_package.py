@@ -44,7 +44,7 @@ def call_all(calls, cwd):
 
 
 def test_every_script_is_installed():
-    assert len(SCRIPTS) == 8 and 'gcp_stereo_node' in SCRIPTS
+    assert len(SCRIPTS) == 9 and 'gcp_stereo_node' in SCRIPTS
     missing = [s for s in SCRIPTS if not (BIN / s).is_file()]
     assert not missing, f'not installed in {BIN}: {missing}'
 
@@ -82,6 +82,8 @@ def failing_calls(tmp):
         ('gcp-stereo-bag', ['make', '--dataset', missing, '--out', tmp / 'bag'],
          f'{tmp / "bag"} not written', 1),
         ('gcp-stereo-load', ['--dataset', missing], missing, 1),
+        ('gcp-stereo-batch', ['--dataset', missing], missing, 1),
+        ('gcp-stereo-batch', ['--bags', missing, '--out', tmp / 'out'], missing, 1),
         ('gcp-stereo-load', ['-p', 'theta=0.5'], 'NAME:=VALUE', 2),
         ('gcp-stereo-demo', ['--out', tmp / 'a_file' / 'out'], tmp / 'a_file' / 'out', 1),
         ('gcp_stereo_node', ['--ros-args', '-p', 'max_disparity:=0'], 'max_disparity', 2),

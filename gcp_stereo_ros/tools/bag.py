@@ -311,9 +311,23 @@ class Runner:
 
 def run(args):
     values = load_params_file(args.params) if args.params else {}
+    convert(run_pipeline(values), values, args)
+
+
+def run_pipeline(values):
+    """Return the pipeline of node parameters `values` for `convert`, its CNN loaded."""
     pipeline = StereoPipeline(config_from_params(values))
     if pipeline.config.use_gcp:
         pipeline.net  # a missing weights file fails here, before any output
+    return pipeline
+
+
+def convert(pipeline, values, args):
+    """
+    Write bag args.out: bag args.inp plus the outputs of `pipeline`, as `run` describes.
+
+    `values`: the node parameters (the pair sync's); args: the options of `run`.
+    """
     sync = make_sync(values)
     with open_bag(args.inp) as reader, output_bag(args.out, args.storage, args.force) as writer:
         names = check_topics(reader, args.inp, args.namespace)
@@ -445,14 +459,27 @@ def play(args):
 
 
 # ---- command line -----------------------------------------------------------------------
+STORAGE = {'choices': ('sqlite3', 'mcap'), 'default': 'mcap',
+           'help': 'storage plugin of the output bag (default mcap)'}
+NAMESPACE = {'default': '', 'metavar': 'NS',
+             'help': 'topics under this namespace (default: none, e.g. /left/image_rect)'}
+
+
+def add_run_options(ap):
+    """Add the options of `run` that apply to any bag (all but --in, --out, --force) to `ap`."""
+    ap.add_argument('--params', type=Path, metavar='YAML',
+                    help='node parameters file, e.g. config/gcp_stereo.yaml '
+                         '(default: the node defaults)')
+    ap.add_argument('--png', type=Path, metavar='DIR',
+                    help='write colour-mapped disparity and GCP-mask PNGs here')
+    ap.add_argument('--storage', **STORAGE)
+    ap.add_argument('--namespace', **NAMESPACE)
+
+
 def parser():
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest='command', required=True)
-    storage = {'choices': ('sqlite3', 'mcap'), 'default': 'mcap',
-               'help': 'storage plugin of the output bag (default mcap)'}
-    namespace = {'default': '', 'metavar': 'NS',
-                 'help': 'topics under this namespace (default: none, e.g. /left/image_rect)'}
     force = {'action': 'store_true', 'help': 'replace an existing --out'}
 
     mk = sub.add_parser('make', help='dataset stereo pairs -> bag with the node input topics '
@@ -462,12 +489,12 @@ def parser():
                          "'motorcycle'")
     mk.add_argument('--frames', nargs='+', metavar='NAME',
                     help='frame names (default: all of the dataset)')
-    mk.add_argument('--storage', **storage)
+    mk.add_argument('--storage', **STORAGE)
     mk.add_argument('--out', required=True, type=Path, metavar='BAG',
                     help='bag to write (a directory)')
     mk.add_argument('--rate', type=positive, default=10.0, metavar='HZ',
                     help='frames per second (default 10)')
-    mk.add_argument('--namespace', **namespace)
+    mk.add_argument('--namespace', **NAMESPACE)
     mk.add_argument('--force', **force)
 
     rn = sub.add_parser('run', help='bag in -> bag out with disparity, gcp_mask, confidence, '
@@ -476,13 +503,7 @@ def parser():
                     help='bag directory, or its .mcap / .db3 file')
     rn.add_argument('--out', required=True, type=Path, metavar='BAG',
                     help='bag to write: the input plus the outputs')
-    rn.add_argument('--params', type=Path, metavar='YAML',
-                    help='node parameters file, e.g. config/gcp_stereo.yaml '
-                         '(default: the node defaults)')
-    rn.add_argument('--png', type=Path, metavar='DIR',
-                    help='write colour-mapped disparity and GCP-mask PNGs here')
-    rn.add_argument('--storage', **storage)
-    rn.add_argument('--namespace', **namespace)
+    add_run_options(rn)
     rn.add_argument('--force', **force)
 
     pl = sub.add_parser('play',

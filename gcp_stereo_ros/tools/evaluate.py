@@ -132,11 +132,9 @@ def parse_overrides(items):
     return out
 
 
-@console_main('gcp-stereo-eval')
-def main(argv=None):
-    ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument('--dataset', action='append', required=True,
+def add_options(ap, dataset_required=True):
+    """Add the options that choose frames, methods and settings (all but --out) to `ap`."""
+    ap.add_argument('--dataset', action='append', required=dataset_required,
                     help='dataset folder in any supported layout (searched recursively; for KITTI '
                          "the folder holding training/), or 'motorcycle'; repeatable")
     ap.add_argument('--frames', nargs='+', help='frame names or shell patterns (default: all)')
@@ -151,35 +149,67 @@ def main(argv=None):
     ap.add_argument('--set', action='append', metavar='KEY=VALUE',
                     help='override a pipeline parameter (e.g. theta=0.7, bf16=true); repeatable')
     ap.add_argument('--json', type=Path, help='write one row per (method, frame) to this file')
+
+
+def make_runner(args):
+    """Return the Runner of the options of `add_options`."""
+    return Runner(args.paths, parse_overrides(args.set), args.preset)
+
+
+def evaluate_frame(runner, args, source, name):
+    """
+    Return (rows, note) of frame `name` of `source`: one row per method of args.methods.
+
+    The note (or '') says how the frame's scoring departs from its benchmark's. Writes the
+    colour-mapped disparity PNGs into args.out if set. Raises ValueError if the frame has
+    no ground truth.
+    """
+    frame = load_frame(source, name)
+    if frame.gt is None:
+        raise ValueError(f'frame {name} has no ground truth to evaluate against')
+    max_disp = args.max_disp or frame.max_disp
+    rows = []
+    for method in args.methods:
+        disp, _, seconds = runner.run(method, frame.left, frame.right, max_disp)
+        rows.append({'method': method, 'frame': name, **error_rates(disp, frame.gt, frame.valid),
+                     'seconds': seconds})
+        if args.out:
+            save_png(args.out / f'{name.replace("/", "_")}_{method}.png', colorize(disp, max_disp))
+    return rows, frame.note or ''
+
+
+def print_results(rows, methods, notes):
+    """Print the table of `rows` and the frames' notes ({frame name: note})."""
+    print(table(rows, methods))
+    for name, note in notes.items():
+        if note:
+            print(f'note: {name}: {note}')
+
+
+def write_rows(path, rows):
+    """Write `rows` as JSON to `path`, replacing it only once the file is complete."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f'.{path.name}.partial')
+    partial.write_text(json.dumps(rows, indent=1))
+    partial.replace(path)
+
+
+@console_main('gcp-stereo-eval')
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_options(ap)
     ap.add_argument('--out', type=Path, help='write colour-mapped disparity PNGs here')
     args = ap.parse_args(argv)
 
-    runner = Runner(args.paths, parse_overrides(args.set), args.preset)
+    runner = make_runner(args)
     rows, notes = [], {}
-    frames = select_frames(args.dataset, args.frames)
-    with tqdm(total=len(frames) * len(args.methods), unit='run', leave=False) as bar:
-        for source, name in frames:
-            frame = load_frame(source, name)
-            if frame.gt is None:
-                raise ValueError(f'frame {name} has no ground truth to evaluate against')
-            if frame.note:
-                notes[name] = frame.note
-            max_disp = args.max_disp or frame.max_disp
-            for method in args.methods:
-                bar.set_description(f'{method} {name}')
-                disp, _, seconds = runner.run(method, frame.left, frame.right, max_disp)
-                rates = error_rates(disp, frame.gt, frame.valid)
-                rows.append({'method': method, 'frame': name, **rates, 'seconds': seconds})
-                if args.out:
-                    save_png(args.out / f'{name.replace("/", "_")}_{method}.png',
-                             colorize(disp, max_disp))
-                bar.update()
-    print(table(rows, args.methods))
-    for name, note in notes.items():
-        print(f'note: {name}: {note}')
+    for source, name in tqdm(select_frames(args.dataset, args.frames), unit='frame', leave=False):
+        frame_rows, notes[name] = evaluate_frame(runner, args, source, name)
+        rows += frame_rows
+    print_results(rows, args.methods, notes)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=1))
+        write_rows(args.json, rows)
 
 
 if __name__ == '__main__':

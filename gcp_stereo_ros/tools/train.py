@@ -19,6 +19,15 @@ as per-patch training at a small fraction of the cost. SGD with momentum, cosine
 rate decay over all steps, fixed seed (numpy generator for crops and offsets, torch for the
 initial weights).
 
+Several processes or machines: start it with torchrun (e.g. `torchrun --standalone
+--nproc-per-node 2 -m gcp_stereo_ros.tools.train ...`). The processes form a
+DistributedDataParallel group (gloo on the CPU, nccl with `--device cuda`, one GPU per
+process); each draws the same crops and scores its share of them (crops rank, rank + N, ...),
+and the averaged gradients make every step the step one process takes with the same
+`--batch-size` (the global batch), so the losses and weights follow the one-process run.
+Rank 0 alone validates, reports, writes checkpoints and the weights; checkpoints resume in
+any number of processes.
+
 The data split of the shipped weights (`gcp_stereo_ros/weights/gcp_cnn.pt`) is
 config/cnn_split.yaml (`--split`): 33 KITTI 2015 road frames and 14 Middlebury scenes to
 train, 10 other KITTI 2015 frames and 4 Middlebury scenes of other families to validate.
@@ -35,7 +44,9 @@ each frame weighted equally, stored in the weights file; `cnn.confidence` return
 probability, which is what theta thresholds.
 """
 import argparse
+import atexit
 from dataclasses import dataclass
+import os
 from pathlib import Path
 import shlex
 import sys
@@ -43,6 +54,8 @@ import time
 
 import numpy as np
 import torch
+from torch import distributed as dist, nn
+from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 import yaml
 
@@ -70,34 +83,55 @@ class View:
     disp: np.ndarray
 
 
-def _padded(gray):
-    return network_input(gray).contiguous(memory_format=torch.channels_last)
+@dataclass
+class Crop:
+    """The GT pixels of a left window of a view, with their positive and negative columns."""
+
+    view: View
+    y0: int
+    x0: int
+    h: int
+    w: int
+    ii: np.ndarray  # rows and columns of the pixels in the window
+    jj: np.ndarray
+    pos: np.ndarray  # right-image columns
+    neg: np.ndarray
 
 
-def _view(name, left, right, gt, valid, gt_right):
+def _padded(gray, device):
+    return network_input(gray).to(device).contiguous(memory_format=torch.channels_last)
+
+
+def _view(name, left, right, gt, valid, gt_right, device):
     lg, rg = gray_pair(left, right)
     valid = valid & np.isfinite(gt)
     d = np.where(valid, np.rint(np.nan_to_num(gt)), -1).astype(np.int64)
     if gt_right is not None:  # occluded pixels fail the left-right GT check
         valid &= right_view_agrees(np.where(valid, gt, 0), gt_right, LR_CHECK_PX)
         d[~valid] = -1
-    return View(name, _padded(lg), _padded(rg), d)
+    return View(name, _padded(lg, device), _padded(rg, device), d)
 
 
-def views(frame):
+def views(frame, device='cpu'):
     """Training views of a frame: itself, plus its mirror when the right GT is known."""
     if frame.gt is None:
         raise ValueError(f'{frame.name}: no ground truth, cannot train on it')
-    out = [_view(frame.name, frame.left, frame.right, frame.gt, frame.valid, frame.gt_right)]
+    out = [_view(frame.name, frame.left, frame.right, frame.gt, frame.valid, frame.gt_right,
+                 device)]
     if frame.gt_right is not None:
         flip = np.fliplr
         out.append(_view(frame.name + ' (mirrored)', flip(frame.right), flip(frame.left),
-                         flip(frame.gt_right), np.isfinite(frame.gt_right), flip(frame.gt)))
+                         flip(frame.gt_right), np.isfinite(frame.gt_right), flip(frame.gt),
+                         device))
     return out
 
 
-def pair_scores(net, view, rng, y0=0, x0=0, h=None, w=None):
-    """(s_pos, s_neg) of every GT pixel in the left window [y0, y0+h) x [x0, x0+w)."""
+def draw_crop(view, rng, y0=0, x0=0, h=None, w=None):
+    """
+    Return the Crop of the left window [y0, y0+h) x [x0, x0+w), its offsets drawn from `rng`.
+
+    None if no GT pixel of the window has its positive and negative inside the right image.
+    """
     height, width = view.disp.shape
     h, w = h or height, w or width
     d = view.disp[y0:y0 + h, x0:x0 + w]
@@ -107,49 +141,82 @@ def pair_scores(net, view, rng, y0=0, x0=0, h=None, w=None):
     pos = xr + rng.integers(-1, 2, n)
     neg = xr + rng.integers(NEG_OFFSETS[0], NEG_OFFSETS[1] + 1, n) * rng.choice((-1, 1), n)
     keep = (np.minimum(pos, neg) >= 0) & (np.maximum(pos, neg) < width)
-    ii, jj, pos, neg = ii[keep], jj[keep], pos[keep], neg[keep]
-    if len(ii) == 0:
+    if not keep.any():
         return None
-    lo, hi = int(min(pos.min(), neg.min())), int(max(pos.max(), neg.max())) + 1
-    fl = net.features(view.left[:, :, y0:y0 + h + 2 * PAD, x0:x0 + w + 2 * PAD])[0]
-    fr = net.features(view.right[:, :, y0:y0 + h + 2 * PAD, lo:hi + 2 * PAD])[0]
-    ii, jj, pos, neg = (torch.from_numpy(a) for a in (ii, jj, pos - lo, neg - lo))
+    return Crop(view, y0, x0, h, w, ii[keep], jj[keep], pos[keep], neg[keep])
+
+
+def crop_scores(net, crop):
+    """(s_pos, s_neg) of every pixel of `crop`."""
+    c = crop
+    lo, hi = int(min(c.pos.min(), c.neg.min())), int(max(c.pos.max(), c.neg.max())) + 1
+    fl = net.features(c.view.left[:, :, c.y0:c.y0 + c.h + 2 * PAD, c.x0:c.x0 + c.w + 2 * PAD])[0]
+    fr = net.features(c.view.right[:, :, c.y0:c.y0 + c.h + 2 * PAD, lo:hi + 2 * PAD])[0]
+    ii, jj, pos, neg = (torch.from_numpy(a).to(fl.device)
+                        for a in (c.ii, c.jj, c.pos - lo, c.neg - lo))
     a = fl[:, ii, jj]
     return (a * fr[:, ii, pos]).sum(0), (a * fr[:, ii, neg]).sum(0)
 
 
 def hinge(s_pos, s_neg):
-    return torch.relu(MARGIN + s_neg - s_pos).mean()
+    """Return the hinge loss of every pixel."""
+    return torch.relu(MARGIN + s_neg - s_pos)
 
 
-def train_step(net, optimizer, train_views, rng, batch_size, bf16=False):
-    """One SGD step on `batch_size` random crops; returns the loss (float)."""
-    scores = []
-    with torch.autocast('cpu', torch.bfloat16, enabled=bf16):
-        while len(scores) < batch_size:
-            view = train_views[rng.integers(len(train_views))]
-            height, width = view.disp.shape
-            h, w = min(CROP[0], height), min(CROP[1], width)
-            s = pair_scores(net, view, rng, int(rng.integers(height - h + 1)),
-                            int(rng.integers(width - w + 1)), h, w)
-            if s is not None:
-                scores.append(s)
-    loss = hinge(torch.cat([s[0] for s in scores]), torch.cat([s[1] for s in scores]))
+class CropLoss(nn.Module):
+    """The summed hinge loss of the pixels of some crops under `net` (what DDP wraps)."""
+
+    def __init__(self, net):
+        super().__init__()
+        self.net = net
+
+    def forward(self, crops):
+        s_pos, s_neg = (torch.cat(s) for s in zip(*(crop_scores(self.net, c) for c in crops)))
+        return hinge(s_pos, s_neg).sum()
+
+
+def train_step(model, optimizer, train_views, rng, batch_size, bf16=False, rank=0, world=1):
+    """
+    Take one SGD step on `batch_size` random crops; return the loss (float).
+
+    `model`: a CropLoss, in DistributedDataParallel when `world` processes train. Each of
+    them draws every crop from its `rng` (the same stream in all) and scores crops rank,
+    rank + world, ... (as DistributedSampler deals out a batch); its summed loss is scaled
+    so that DDP's average of the gradients is the gradient of the mean loss over the pixels
+    of all the crops: the step one process takes.
+    """
+    crops = []
+    while len(crops) < batch_size:
+        view = train_views[rng.integers(len(train_views))]
+        height, width = view.disp.shape
+        h, w = min(CROP[0], height), min(CROP[1], width)
+        crop = draw_crop(view, rng, int(rng.integers(height - h + 1)),
+                         int(rng.integers(width - w + 1)), h, w)
+        if crop is not None:
+            crops.append(crop)
+    pixels = sum(len(c.ii) for c in crops)
+    device = next(model.parameters()).device
+    with torch.autocast(device.type, torch.bfloat16, enabled=bf16):
+        total = model(crops[rank::world])
     optimizer.zero_grad()
-    loss.backward()
+    (total * (world / pixels)).backward()
     optimizer.step()
-    return loss.item()
+    total = total.detach()
+    if world > 1:
+        dist.all_reduce(total)
+    return total.item() / pixels
 
 
 def validate(net, frames, thetas):
     """{frame name: {'loss', 'wta_accuracy', 'gcp': {theta: (density %, accuracy %)}}}."""
     out = {}
+    device = next(net.parameters()).device
     net.eval()
     with torch.no_grad():
         for f in frames:
             rng = np.random.default_rng(0)
-            loss = float(hinge(*pair_scores(net, views(f)[0], rng)))
-            cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp)
+            loss = float(hinge(*crop_scores(net, draw_crop(views(f, device)[0], rng))).mean())
+            cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp, device)
             stats = {f'{t:g}': gcp_quality(cof_c > t, cof_d, f.gt, f.valid) for t in thetas}
             out[f.name] = {'loss': loss,
                            'wta_accuracy': gcp_quality(cof_c >= 0, cof_d, f.gt, f.valid)[1],
@@ -191,9 +258,10 @@ def calibration_samples(net, frames):
     weight: 1 / (the frame's evaluated pixels), so that every frame counts the same.
     """
     net.calibration = None
+    device = next(net.parameters()).device
     out = []
     for f in frames:
-        cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp)
+        cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp, device)
         sel = f.valid & np.isfinite(f.gt)
         correct = np.abs(cof_d[sel] - f.gt[sel]) <= CALIBRATION_PX
         out.append((cof_c[sel], correct.astype(np.float64), np.full(sel.sum(), 1.0 / sel.sum())))
@@ -252,6 +320,8 @@ def parse_args(argv):
     p.add_argument('--threads', type=int,
                    help="torch CPU threads (default: torch's choice); 1 is much faster than 2 "
                         'when other processes keep a core busy')
+    p.add_argument('--device', default='cpu',
+                   help="'cpu' or 'cuda' (under torchrun each process takes GPU LOCAL_RANK)")
     p.add_argument('--checkpoint-dir', type=Path, help='save a checkpoint after every epoch here')
     p.add_argument('--resume', type=Path, help='continue from this checkpoint')
     p.add_argument('--out', type=Path, default=Path('gcp_cnn.pt'), help='final weights file')
@@ -261,6 +331,12 @@ def parse_args(argv):
             p.error(f'--{k.replace("_", "-")} must be at least 1')
     if args.lr <= 0 or not 0 <= args.momentum < 1:
         p.error('--lr must be positive and --momentum in [0, 1)')
+    if not (args.device == 'cpu' or args.device.startswith('cuda')):
+        p.error(f"--device must be 'cpu' or 'cuda[:N]', got {args.device!r}")
+    world = int(os.environ.get('WORLD_SIZE', '1'))
+    if args.batch_size < world:
+        p.error(f'--batch-size {args.batch_size} is less than the {world} processes: '
+                'each needs a crop per step')
     if args.split:
         if args.frames or args.val_frames:
             p.error('--split replaces --frames and --val-frames')
@@ -273,19 +349,38 @@ def parse_args(argv):
     return args
 
 
+def distributed(device):
+    """
+    Return (rank, processes, device) of this process; under torchrun, join its process group.
+
+    torchrun sets WORLD_SIZE, RANK and LOCAL_RANK. The group talks gloo on the CPU and nccl
+    on CUDA, where each process takes GPU LOCAL_RANK.
+    """
+    world = int(os.environ.get('WORLD_SIZE', '1'))
+    if world == 1:
+        return 0, 1, torch.device(device)
+    if device.startswith('cuda'):
+        device = f'cuda:{os.environ["LOCAL_RANK"]}'
+        torch.cuda.set_device(device)
+    dist.init_process_group('nccl' if device.startswith('cuda') else 'gloo')
+    atexit.register(dist.destroy_process_group)
+    return dist.get_rank(), world, torch.device(device)
+
+
 @console_main('gcp-stereo-train')
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     args = parse_args(argv)
+    rank, world, device = distributed(args.device)  # rank 0 validates, reports and saves
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     train_frames = _select(args.dataset, args.frames, 'training')
     val_frames = (_select(args.val_dataset or args.dataset, args.val_frames, 'validation')
-                  if args.val_frames else [])
-    train_views = [v for f in train_frames for v in views(f)]
-    net = GcpNet().to(memory_format=torch.channels_last)
+                  if args.val_frames and rank == 0 else [])
+    train_views = [v for f in train_frames for v in views(f, device)]
+    net = GcpNet().to(device, memory_format=torch.channels_last)
     optimizer = torch.optim.SGD(net.parameters(), lr=args.lr, momentum=args.momentum)
     steps = -(-args.samples_per_epoch // args.batch_size)
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=args.epochs * steps)
@@ -298,21 +393,28 @@ def main(argv=None):
         rng.bit_generator.state = ckpt['rng']
         torch.set_rng_state(ckpt['torch_rng'])
         start, history, seconds = ckpt['epoch'], ckpt['history'], ckpt['seconds']
-    tqdm.write(f'training on {len(train_views)} views: {", ".join(v.name for v in train_views)}; '
-               f'{steps} steps of {args.batch_size} crops per epoch')
+    model = CropLoss(net) if world == 1 else DistributedDataParallel(CropLoss(net))
+    if rank == 0:
+        tqdm.write(f'training on {len(train_views)} views: '
+                   f'{", ".join(v.name for v in train_views)}; {steps} steps of '
+                   f'{args.batch_size} crops per epoch, in {world} process(es)')
     for epoch in range(start + 1, args.epochs + 1):
         t = time.perf_counter()
         net.train()
-        bar = tqdm(range(steps), desc=f'epoch {epoch}/{args.epochs}', mininterval=2.0)
+        bar = tqdm(range(steps), desc=f'epoch {epoch}/{args.epochs}', mininterval=2.0,
+                   disable=rank > 0)
         losses = []
         for _ in bar:
-            losses.append(train_step(net, optimizer, train_views, rng, args.batch_size, args.bf16))
+            losses.append(train_step(model, optimizer, train_views, rng, args.batch_size,
+                                     args.bf16, rank, world))
             scheduler.step()
             bar.set_postfix(loss=f'{np.mean(losses[-50:]):.4f}')
         val = validate(net, val_frames, args.val_thetas)
         seconds += time.perf_counter() - t
         history.append({'epoch': epoch, 'train_loss': float(np.mean(losses)), 'seconds': seconds,
                         'val': val})
+        if rank > 0:
+            continue
         _report(epoch, history[-1]['train_loss'], val)
         if args.checkpoint_dir:
             args.checkpoint_dir.mkdir(parents=True, exist_ok=True)
@@ -321,7 +423,9 @@ def main(argv=None):
                         'rng': rng.bit_generator.state, 'torch_rng': torch.get_rng_state(),
                         'history': history, 'seconds': seconds},
                        args.checkpoint_dir / f'epoch_{epoch:03d}.pt')
-    blob = {'state_dict': {k: v.contiguous() for k, v in net.state_dict().items()}}
+    if rank > 0:
+        return
+    blob = {'state_dict': {k: v.contiguous().cpu() for k, v in net.state_dict().items()}}
     if val_frames:
         net.eval()
         with torch.no_grad():
@@ -341,8 +445,8 @@ def main(argv=None):
     meta = {'command': shlex.join(['gcp-stereo-train', *command]),
             'train_frames': [f.name for f in train_frames],
             'val_frames': [f.name for f in val_frames], 'seed': args.seed, 'epochs': args.epochs,
-            'bf16': args.bf16, 'seconds': seconds, 'torch': str(torch.__version__),
-            'history': history}
+            'bf16': args.bf16, 'processes': world, 'seconds': seconds,
+            'torch': str(torch.__version__), 'history': history}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     torch.save({**blob, 'meta': meta}, args.out)
     tqdm.write(f'wrote {args.out} after {seconds:.0f} s of training')
