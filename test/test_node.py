@@ -236,7 +236,7 @@ def test_exact_and_approximate_sync(harness, pair):
 def test_set_parameters_live(harness, pair):
     left, right = pair
     ok = harness.set_params({'census.theta': 0.6, 'census.P1': 6.0, 'census.P2': 100.0,
-                             'paths': 8})
+                             'paths': 8, 'downsample': 2})
     assert all(r.successful for r in ok)
     for values, reason in [
         ({'paths': 12}, 'paths'),
@@ -247,6 +247,8 @@ def test_set_parameters_live(harness, pair):
         ({'census.window': 13}, 'census.window'),
         ({'image_transport': 'theora'}, 'image_transport'),
         ({'bf16': 'maybe'}, 'bf16'),
+        ({'downsample': 3}, 'downsample'),
+        ({'device': 'cuda:7'}, "device 'cuda:7'"),
     ]:
         (result,) = harness.set_params(values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
@@ -257,7 +259,7 @@ def test_set_parameters_live(harness, pair):
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity after set')
     overrides = {**harness.overrides, 'census.theta': 0.6, 'census.P1': 6.0,
-                 'census.P2': 100.0, 'paths': 8, 'bf16': False}
+                 'census.P2': 100.0, 'paths': 8, 'bf16': False, 'downsample': 2}
     want, result = expected(overrides, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
     np.testing.assert_array_equal(image_to_array(harness.gcp[-1]),

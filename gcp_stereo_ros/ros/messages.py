@@ -62,15 +62,17 @@ def disparity_message(types, header, disp, config, model=None, data=_same):
     Z = f * t / d, with f and t of the camera model (0 without one), and min_disparity,
     max_disparity bound the values the search could give. NaN = invalid, published as
     min_disparity - 1 as the message definition asks. valid_window is the region where
-    the matching window and every searched disparity stay inside both images.
+    the matching window and every searched disparity stay inside both images, in
+    full-size pixels when the pipeline matched at 1 / `config.downsample` resolution.
     """
-    border = config.window // 2
+    scale = config.downsample
+    border = config.window // 2 * scale
     h, w = disp.shape
     offset = np.float32(model.cx_offset if model is not None else 0.0)
     low, high = -offset, np.float32(config.max_disp - 1) - offset
     out = disp - offset
     out[np.isnan(out)] = low - 1
-    left = min(config.max_disp - 1 + border, w)
+    left = min((config.matched_disp - 1) * scale + border, w)
     roi = types.RegionOfInterest(x_offset=left, y_offset=border, width=max(w - border - left, 0),
                                  height=max(h - 2 * border, 0), do_rectify=False)
     return types.DisparityImage(
@@ -78,7 +80,7 @@ def disparity_message(types, header, disp, config, model=None, data=_same):
         f=float(model.fx) if model is not None else 0.0,
         t=float(model.baseline) if model is not None else 0.0,
         valid_window=roi, min_disparity=float(low), max_disparity=float(high),
-        delta_d=1.0 / 16 if config.subpixel else 1.0)
+        delta_d=scale / 16 if config.subpixel else float(scale))
 
 
 def image_message(types, header, array, encoding, data=_same):

@@ -72,7 +72,8 @@ PARAMS = (
           "GCPs only where the right view's CNN disparity agrees within 1 px", 'gcp_lr_check'),
     Param('weights', _D.weights,
           "CNN weights file ('' = the weights shipped with the package)", 'weights'),
-    Param('device', _D.device, "torch device of the CNN: 'cpu', 'cuda' or 'cuda:N'", 'device'),
+    Param('device', _D.device,
+          "'cpu', or 'cuda' / 'cuda:N' to run the whole pipeline on that GPU", 'device'),
     Param('bf16', _D.bf16, "bfloat16 CNN descriptors: true, false or 'auto' (on where native: "
           'CPUs with avx512_bf16 or AMX, CUDA)', 'bf16', dynamic=True),
     Param('subpixel', _D.subpixel, 'parabola fit for sub-pixel disparities', 'subpixel'),
@@ -80,6 +81,10 @@ PARAMS = (
           'left-right consistency check (invalid pixels published as min_disparity - 1)',
           'lr_check'),
     Param('median', _D.median, '3x3 median filter on the disparity', 'median'),
+    Param('downsample', _D.downsample,
+          'match at 1/N resolution (1, 2 or 4): both images area-binned, max_disparity / N; '
+          'outputs at full size, disparities in full-size pixels', 'downsample',
+          choices=(1, 2, 4)),
     Param('image_transport', 'raw',
           "input images: 'raw' (sensor_msgs/Image) or 'compressed' (sensor_msgs/"
           'CompressedImage, jpeg or png, on <image topic>/compressed)',

@@ -6,14 +6,15 @@ cost volume -> (CNN confidence -> GCPs -> refinement) -> SGM -> winner-takes-all
 import dataclasses
 from dataclasses import dataclass
 import math
+import re
 import time
 
 import numpy as np
 
 from . import cost as cost_mod
 from .gcp import refine, select
-from .images import gray_pair
-from .sgm import aggregate, disparity, path_sum_bound, PATHS
+from .images import bin_area, gray_pair, mean_std, upsample
+from .sgm import aggregate, disparity, finish, path_sum_bound, PATHS
 
 # Defaults for each matching cost, chosen by cross-validation on the validation frames
 # (README: "Method and results"); theta is on the calibrated scale (cnn.calibrated).
@@ -31,6 +32,7 @@ PAPER = {
             'gcp_lr_check': False},
 }
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
+DOWNSAMPLE = (1, 2, 4)
 
 
 @dataclass(frozen=True)
@@ -56,6 +58,9 @@ class StereoConfig:
     subpixel: bool = False
     lr_check: bool = False
     median: bool = False
+    # Match at 1/downsample of the resolution (area-binned images, max_disp / downsample);
+    # the outputs come back at full size, disparities in full-size pixels.
+    downsample: int = 1
 
     @classmethod
     def for_cost(cls, cost, preset='default', **overrides):
@@ -91,9 +96,17 @@ class StereoConfig:
             raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
         if self.bf16 not in (True, False, 'auto'):
             raise ValueError(f"bf16 must be true, false or 'auto', got {self.bf16!r}")
-        if not (self.device == 'cpu' or self.device.startswith('cuda')):
+        if not (self.device == 'cpu' or re.fullmatch(r'cuda(:\d+)?', self.device)):
             raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
+        if not (isinstance(self.downsample, (int, np.integer)) and not isinstance(
+                self.downsample, bool) and self.downsample in DOWNSAMPLE):
+            raise ValueError(f'downsample must be one of {DOWNSAMPLE}, got {self.downsample!r}')
         return self
+
+    @property
+    def matched_disp(self):
+        """Return the disparities searched at the matching resolution: max_disp / downsample."""
+        return -(-self.max_disp // self.downsample)
 
 
 @dataclass
@@ -127,6 +140,19 @@ def fixed_point_scale(cfg):
     return None
 
 
+def volume_arithmetic(cfg):
+    """
+    Return (scale, dtype, fixed) of the pipeline's volumes for `cfg`.
+
+    `fixed_point_scale` (None for float32), the volume type (uint16 with a scale, else
+    float32), and the map of a cost-unit parameter (P1, P2, C_hi, C_low) into the volume's.
+    """
+    scale = fixed_point_scale(cfg)
+    if scale is None:
+        return None, np.dtype(np.float32), lambda v: v
+    return scale, np.dtype(np.uint16), lambda v: round(v * scale)
+
+
 class StereoPipeline:
     """
     Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
@@ -138,6 +164,9 @@ class StereoPipeline:
 
     def __init__(self, config=None, net=None, _workspace=None):
         self.config = (config or StereoConfig()).validate()
+        if self.config.device != 'cpu':
+            from .gpu import check_device
+            check_device(self.config.device)
         self._net = net
         self._workspace = {} if _workspace is None else _workspace
 
@@ -164,44 +193,71 @@ class StereoPipeline:
     def net(self):
         if self._net is None:
             from .cnn import load_net  # torch is imported only when GCPs are used
-            self._net = load_net(self.config.weights or None, self.config.device)
+            device = self.config.device
+            if device != 'cpu':
+                from .gpu import torch_device
+                device = torch_device(device)
+            self._net = load_net(self.config.weights or None, device)
         return self._net
 
     def __call__(self, left, right, confidence=None):
         """
         Return the StereoResult of a pair.
 
-        `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair and max_disp,
-        to sweep GCP/SGM parameters without running the CNN again.
+        `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair, max_disp and
+        downsample, as its StereoResult holds them, to sweep GCP/SGM parameters without
+        running the CNN again.
         """
         cfg = self.config
-        net = self.net if cfg.use_gcp and confidence is None else None
+        if cfg.use_gcp and confidence is not None and len(confidence) != 3:
+            raise ValueError('confidence must be (cof_c, cof_d, cof_dr), '
+                             'as StereoResult holds them')
         seconds = {}
         t = time.perf_counter()
 
         def lap(stage):
+            """Record the time since the last lap as `stage`; None only restarts the clock."""
             nonlocal t
             now = time.perf_counter()
-            seconds[stage] = now - t
+            if stage is not None:
+                seconds[stage] = now - t
             t = now
 
         left, right = gray_pair(left, right)
+        shape, f = left.shape, cfg.downsample
+        if f > 1:
+            left, right = bin_area(left, f), bin_area(right, f)
+            if cfg.use_gcp and confidence is not None:  # undo the upsampling of its run
+                h, w = left.shape
+                cof_c, cof_d, cof_dr = (np.asarray(a)[:h * f:f, :w * f:f] for a in confidence)
+                confidence = cof_c, cof_d // f, cof_dr // f
+            lap('downsample')
+        match = self._match if cfg.device == 'cpu' else self._match_cuda
+        outputs = match(left, right, confidence if cfg.use_gcp else None, lap, seconds)
+        if f > 1:  # back to full size, disparities in full-size pixels
+            disp, gcp, cof_c, cof_d, cof_dr = outputs
+            disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
+                                   for a in (disp, cof_d, cof_dr))
+            outputs = tuple(None if a is None else upsample(a, f, shape)
+                            for a in (disp, gcp, cof_c, cof_d, cof_dr))
+            lap('upsample')
+        return StereoResult(*outputs, seconds)
+
+    def _match(self, left, right, confidence, lap, seconds):
+        """Return (disparity, gcp, cof_c, cof_d, cof_dr) of a gray pair, on the CPU."""
+        cfg = self.config
+        nd = cfg.matched_disp
         gcp = cof_c = cof_d = cof_dr = None
-        if net is not None:
-            from .cnn import confidence as cnn_confidence
-            confidence = cnn_confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16,
-                                        seconds=seconds)
-            t = time.perf_counter()
         if cfg.use_gcp:
-            if len(confidence) != 3:
-                raise ValueError('confidence must be (cof_c, cof_d, cof_dr), '
-                                 'as StereoResult holds them')
+            if confidence is None:
+                from .cnn import confidence as cnn_confidence
+                confidence = cnn_confidence(self.net, left, right, nd, cfg.device, cfg.bf16,
+                                            seconds=seconds)
+                lap(None)  # the CNN timed its own stages
             cof_c, cof_d, cof_dr = confidence
-        shape = left.shape + (cfg.max_disp,)
-        scale = fixed_point_scale(cfg)
-        dtype = np.dtype(np.float32 if scale is None else np.uint16)
-        fixed = (lambda v: v) if scale is None else (lambda v: round(v * scale))
-        volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window,
+        shape = left.shape + (nd,)
+        scale, dtype, fixed = volume_arithmetic(cfg)
+        volume = cost_mod.cost_volume(left, right, nd, cfg.cost, cfg.window,
                                       self._array('cost', shape, dtype), scale or 1, dtype)
         lap('cost')
         if cfg.use_gcp:
@@ -214,4 +270,66 @@ class StereoPipeline:
         lap('sgm')
         disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)
         lap('wta')
-        return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds)
+        return disp, gcp, cof_c, cof_d, cof_dr
+
+    def _match_cuda(self, left, right, confidence, lap, seconds):
+        """
+        Return `_match`'s outputs, computed on the GPU `config.device` (see `gpu`).
+
+        One upload of the pair (and of `confidence` if given), the volumes stay in GPU
+        memory, one download of the outputs. The device is synchronized at each stage's end,
+        so that the stage times are the GPU's.
+        """
+        import torch
+
+        from . import gpu
+        from .cnn import device_confidence, padded_input
+        from .cost_cuda import cost_volume
+        from .gcp_cuda import select_refine
+        from .sgm_cuda import aggregate, winners
+
+        def stage(name):
+            gpu.synchronize()
+            lap(name)
+
+        cfg = self.config
+        nd = cfg.matched_disp
+        scale, dtype, fixed = volume_arithmetic(cfg)
+        shape, vtype = left.shape + (nd,), gpu.VOLUME_TYPES[dtype]
+        device = gpu.torch_device(cfg.device)
+        with gpu.current(cfg.device):
+            stats = [mean_std(g) for g in (left, right)]
+            pair = torch.from_numpy(np.stack([left, right])).to(device)
+            if cfg.use_gcp and confidence is not None:
+                cof = [torch.from_numpy(np.ascontiguousarray(a, t)).to(device)
+                       for a, t in zip(confidence, (np.float32, np.int32, np.int32))]
+            stage('upload')
+            if cfg.use_gcp or cfg.cost == 'sad':  # images.standardize on the device
+                standardized = torch.stack([(g - m) / s for g, (m, s) in zip(pair, stats)])
+            if cfg.use_gcp and confidence is None:
+                cof = device_confidence(self.net, padded_input(standardized), nd, cfg.bf16,
+                                        seconds)
+                lap(None)  # the CNN timed its own stages
+            volume = cost_volume(pair if cfg.cost == 'census' else standardized, nd, cfg.cost,
+                                 cfg.window, self._array('cuda_cost', shape, vtype),
+                                 scale or 1, dtype)
+            top = cost_mod.max_cost(cfg.cost, cfg.window) * (scale or 1)
+            stage('cost')
+            gcp = None
+            if cfg.use_gcp:
+                gcp = select_refine(volume, *cof, cfg.theta, fixed(cfg.c_hi), fixed(cfg.c_low),
+                                    cfg.gcp_lr_check)
+                top = max(top, fixed(cfg.c_hi))
+                stage('refine')
+            total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, top,
+                              self._array('cuda_total', shape, vtype))
+            self._workspace.update(cuda_cost=volume, cuda_total=total)
+            stage('sgm')
+            disp, consistent = winners(total, cfg.subpixel, cfg.lr_check)
+            stage('wta')
+            fresh = cof if cfg.use_gcp and confidence is None else []
+            disp, consistent, gcp, *fresh = (None if a is None else a.cpu().numpy()
+                                             for a in (disp, consistent, gcp, *fresh))
+            lap('download')
+        cof_c, cof_d, cof_dr = fresh or confidence or (None,) * 3
+        return finish(disp, consistent, cfg.median), gcp, cof_c, cof_d, cof_dr
