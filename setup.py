@@ -24,7 +24,8 @@ setup(
     maintainer_email='maintainers@gcp-stereo-ros.invalid',
     description='CNN ground control points steering semi-global matching, as a ROS 2 node',
     license='BSD-3-Clause',
-    tests_require=['pytest'],
+    # colcon test picks its runner from here (setuptools no longer keeps tests_require).
+    extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
             'gcp_stereo_node = gcp_stereo_ros.node:main',

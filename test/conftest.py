@@ -1,8 +1,10 @@
 """Shared test set-up: where the real data lives, and an isolated ROS 2 graph per process."""
 import os
 from pathlib import Path
+from types import SimpleNamespace
 
 from gcp_stereo_ros.ros.graph import private_env
+import numpy as np
 import pytest
 
 # Every test process gets its own DDS domain on loopback only, so parallel runs never
@@ -17,6 +19,40 @@ def data_dir():
     """`../shared/data` beside the checkout; CI always has it, so its absence fails loudly."""
     assert DATA.is_dir(), f'real test data expected at {DATA}'
     return DATA
+
+
+@pytest.fixture(scope='session')
+def distorted_pair():
+    """
+    Motorcycle at a third of its size, rectified, and the raw pair a real rig would record.
+
+    The rectified cameras have focal length F px and baseline T m (principal point at the
+    centre); each raw camera has its own K, plumb_bob D (barrel distortion) and a 1 degree
+    rotation R. Raw pixels are sampled from the rectified images through the inverse map
+    (bicubic), so rectifying the raw pair with K, D, R, P must give the rectified pair back.
+    `info[side]` holds the CameraInfo fields of the raw cameras.
+    """
+    import cv2
+    from skimage import data
+    left, right, _ = data.stereo_motorcycle()
+    rect = {s: cv2.resize(im, (247, 167), interpolation=cv2.INTER_AREA)
+            for s, im in (('left', left), ('right', right))}
+    h, w = rect['left'].shape[:2]
+    f, baseline = 330.0, 0.2
+    grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float32),
+                                np.arange(h, dtype=np.float32)), -1).reshape(-1, 1, 2)
+    raw, info = {}, {}
+    for side, axis, angle, d in (('left', [0.3, 1, 0.1], 1.0, [-0.28, 0.09, 0.001, -5e-4, 0]),
+                                 ('right', [0.2, 1, -0.1], -1.0, [-0.25, 0.07, -0.001, 8e-4, 0])):
+        p = np.array([[f, 0, w / 2, -f * baseline if side == 'right' else 0.0],
+                      [0, f, h / 2, 0], [0, 0, 1, 0]])
+        k = np.array([[1.05 * f, 0, w / 2 + 3], [0, 1.05 * f, h / 2 - 2], [0, 0, 1]])
+        r = cv2.Rodrigues(np.array(axis) * np.radians(angle))[0]
+        at = cv2.undistortPoints(grid, k, np.array(d), R=r, P=p).reshape(h, w, 2)
+        raw[side] = cv2.remap(rect[side], at[..., 0], at[..., 1], cv2.INTER_CUBIC)
+        info[side] = {'width': w, 'height': h, 'distortion_model': 'plumb_bob',
+                      'd': np.array(d, float), 'k': k.ravel(), 'r': r.ravel(), 'p': p.ravel()}
+    return SimpleNamespace(rect=rect, raw=raw, info=info, f=f, baseline=baseline)
 
 
 @pytest.fixture

@@ -1,4 +1,8 @@
-"""The ROS 2 node with real rclpy: outputs, encodings, sync, live parameters, bad input."""
+"""
+The ROS 2 node with real rclpy.
+
+Outputs, encodings, sync, live parameters, bad input; memory, start-up and shutdown.
+"""
 import os
 from pathlib import Path
 import re
@@ -9,11 +13,14 @@ import threading
 import time
 
 import cv2
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.ros.camera import Rectifier, StereoModel
 from gcp_stereo_ros.ros.graph import start_node, stop
 from gcp_stereo_ros.ros.node import GcpStereoNode
 from gcp_stereo_ros.ros.params import config_from_params
-from gcp_stereo_ros.ros.rosimage import array_to_image_fields, image_to_array
+from gcp_stereo_ros.ros.rosimage import (array_to_compressed_fields, array_to_image_fields,
+                                         image_to_array)
 from gcp_stereo_ros.ros.worker import NewestWorker
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
@@ -23,8 +30,8 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image
+from rclpy.qos import qos_profile_sensor_data, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from skimage import data
 from stereo_msgs.msg import DisparityImage
 
@@ -47,9 +54,9 @@ class Harness:
         self.node = GcpStereoNode(
             parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
         self.peer = Node('test_peer')
-        self.pub = {
-            s: self.peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data)
-            for s in ('left', 'right')}
+        self.pub = {s: self.peer.create_publisher(Image, topic, qos_profile_sensor_data)
+                    for s, topic in self.node.input.topics().items()}
+        self.pubs = {}
         self.disparity, self.gcp = [], []
         self.peer.create_subscription(DisparityImage, 'disparity', self.disparity.append, 10)
         self.peer.create_subscription(Image, 'gcp_mask', self.gcp.append, 10)
@@ -62,35 +69,62 @@ class Harness:
         wait_for(lambda: all(p.get_subscription_count() for p in self.pub.values()), 'subscribers')
         assert self.set_client.wait_for_service(timeout_sec=10)
 
-    def send(self, side, array, encoding, stamp_ns, changes=None):
+    def send(self, side, array, encoding, stamp_ns, changes=None, frame_id='left_camera'):
         """Publish `array` as `encoding`, with Image fields then overwritten by `changes`."""
         fields = array_to_image_fields(array, encoding) if array is not None else {}
         msg = Image(**{**fields, 'data': bytes(fields.get('data', b''))})
         for key, value in (changes or {}).items():
             setattr(msg, key, value)
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-        msg.header.frame_id = 'left_camera'
+        msg.header.frame_id = frame_id
         self.pub[side].publish(msg)
 
-    def send_pair(self, left, right, encoding, stamp_ns, right_stamp_ns=None):
-        self.send('left', left, encoding, stamp_ns)
-        self.send('right', right, encoding, stamp_ns if right_stamp_ns is None else right_stamp_ns)
+    def listen(self, topic, cls, qos=10):
+        """Return the list the messages of `topic` go to, once the node's publisher has us."""
+        got = []
+        self.peer.create_subscription(cls, topic, got.append, qos)
+        if topic in self.node._pubs:
+            wait_for(lambda: self.node._pubs[topic].get_subscription_count() > 0, topic)
+        return got
 
-    def set_params(self, **values):
+    def publish(self, topic, msg, cls=None):
+        """Publish `msg` on `topic` with the sensor-data QoS, once the node subscribes it."""
+        if topic not in self.pubs:
+            self.pubs[topic] = self.peer.create_publisher(cls or type(msg), topic,
+                                                          qos_profile_sensor_data)
+            wait_for(lambda: self.pubs[topic].get_subscription_count() > 0, f'{topic} matched')
+        self.pubs[topic].publish(msg)
+
+    def send_info(self, side, fields, stamp_ns):
+        msg = CameraInfo(**fields)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+        self.publish(f'{side}/camera_info', msg)
+        wait_for(lambda: self.node.input.info[side] is not None
+                 and stamp_of(self.node.input.info[side]) == stamp_ns, f'{side} camera_info')
+
+    def send_taken(self, side, array, encoding, stamp_ns):
+        """Send, then wait until the node took it (its image subscriptions keep depth 1)."""
+        taken = self.node.input.received[side]
+        self.send(side, array, encoding, stamp_ns)
+        wait_for(lambda: self.node.input.received[side] > taken, f'{side} image taken')
+
+    def send_pair(self, left, right, encoding, stamp_ns, right_stamp_ns=None, **kwargs):
+        self.send('left', left, encoding, stamp_ns, **kwargs)
+        self.send('right', right, encoding,
+                  stamp_ns if right_stamp_ns is None else right_stamp_ns, **kwargs)
+
+    def set_params(self, values):
         req = SetParameters.Request(
             parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
         future = self.set_client.call_async(req)
         wait_for(future.done, 'set_parameters response')
         return future.result().results
 
-    def log(self, severity):
-        """Return the node's `severity` lines as the console shows them (rcutils: stderr)."""
+    def error_logs(self, level='ERROR'):
+        """Return the node's lines of `level` as the console shows them (rcutils: stderr)."""
         self.stderr += self.capfd.readouterr().err
-        return '\n'.join(line for line in self.stderr.splitlines()
-                         if line.startswith(f'[{severity}]') and '[gcp_stereo_node]' in line)
-
-    def error_logs(self):
-        return self.log('ERROR').splitlines()
+        return [line for line in self.stderr.splitlines()
+                if line.startswith(f'[{level}]') and '[gcp_stereo_node]' in line]
 
     def close(self):
         self.executor.shutdown()
@@ -191,15 +225,15 @@ def test_exact_and_approximate_sync(harness, pair):
 
     # no exact twin
     harness.send_pair(left, right, 'rgb8', 1_000_000_000, right_stamp_ns=1_000_500_000)
-    harness.send('left', left, 'rgb8', 3_000_000_000)  # out of order: 3 s, then 2 s
-    harness.send('left', left, 'rgb8', 2_000_000_000)
+    harness.send_taken('left', left, 'rgb8', 3_000_000_000)  # out of order: 3 s, then 2 s
+    harness.send_taken('left', left, 'rgb8', 2_000_000_000)
     harness.send('right', right, 'rgb8', 2_000_000_000)
     assert outputs(1) == [2_000_000_000]
     harness.send('right', right, 'rgb8', 3_000_000_000)  # the queued 3 s left image finds its twin
     assert outputs(2) == [2_000_000_000, 3_000_000_000]
 
     assert all(r.successful for r in harness.set_params(
-        approximate_sync=True, approximate_sync_tolerance_seconds=0.01))
+        {'approximate_sync': True, 'approximate_sync_tolerance_seconds': 0.01}))
     # 20 ms: too far
     harness.send_pair(left, right, 'rgb8', 4_000_000_000, right_stamp_ns=4_020_000_000)
     # 4 ms: a pair
@@ -215,43 +249,59 @@ def test_exact_and_approximate_sync(harness, pair):
 
 def test_set_parameters_live(harness, pair):
     left, right = pair
-    ok = harness.set_params(theta=0.6, P1=6.0, P2=100.0, paths=8)
+    ok = harness.set_params({'census.theta': 0.6, 'census.P1': 6.0, 'census.P2': 100.0,
+                             'paths': 8, 'downsample': 2})
     assert all(r.successful for r in ok)
     for values, reason in [
-        ({'P2': 2.0}, 'P2'),
         ({'paths': 12}, 'paths'),
-        ({'theta': 1.5}, 'theta'),
+        ({'census.theta': 1.5}, 'theta'),
         ({'cost': 'ncc'}, 'cost'),
         ({'weights': '/no/such/weights.pt'}, '/no/such/weights.pt'),
-        ({'window': 10}, 'window'),
+        ({'census.window': 10}, 'window'),
+        ({'census.window': 13}, 'census.window'),
+        ({'image_transport': 'theora'}, 'image_transport'),
         ({'bf16': 'maybe'}, 'bf16'),
+        ({'downsample': 3}, 'downsample'),
+        ({'device': 'cuda:7'}, "device 'cuda:7'"),
     ]:
-        (result,) = harness.set_params(**values)[:1]
+        (result,) = harness.set_params(values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
-    assert harness.node.get_parameter('theta').value == 0.6
+    assert harness.node.get_parameter('census.theta').value == 0.6
     for bf16 in (True, 'auto', False):  # true, false or 'auto': one parameter, two types
-        assert all(r.successful for r in harness.set_params(bf16=bf16))
+        assert all(r.successful for r in harness.set_params({'bf16': bf16}))
         assert harness.node.params.pipeline.config.bf16 == bf16
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity after set')
-    overrides = {**harness.overrides, 'theta': 0.6, 'P1': 6.0, 'P2': 100.0, 'paths': 8,
-                 'bf16': False}
+    overrides = {**harness.overrides, 'census.theta': 0.6, 'census.P1': 6.0,
+                 'census.P2': 100.0, 'paths': 8, 'bf16': False, 'downsample': 2}
     want, result = expected(overrides, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
     np.testing.assert_array_equal(image_to_array(harness.gcp[-1]),
                                   result.gcp.astype(np.uint8) * 255)
 
-    # Switching cost loads SAD's defaults; values set after it (SetParameters applies a
-    # request in order) or in the same atomic request are kept.
-    assert all(r.successful for r in harness.set_params(cost='sad', P2=20.0))
-    values = {n: harness.node.get_parameter(n).value
-              for n in ('theta', 'P1', 'P2', 'c_hi', 'c_low')}
-    assert values == {'theta': 0.45, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
+    # Switching cost uses SAD's own values and changes no other parameter.
+    assert all(r.successful for r in harness.set_params({'sad.P2': 20.0, 'cost': 'sad'}))
+    names = ('theta', 'P1', 'P2', 'c_hi', 'c_low')
+    assert {n: harness.node.get_parameter(f'census.{n}').value for n in names} == {
+        'theta': 0.6, 'P1': 6.0, 'P2': 100.0, 'c_hi': 200.0, 'c_low': 5.0}
+    assert {n: harness.node.get_parameter(f'sad.{n}').value for n in names} == {
+        'theta': 0.45, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
     harness.send_pair(left, right, 'rgb8', 8_000_000_000)
     wait_for(lambda: stamp_of(harness.disparity[-1]) == 8_000_000_000,
              'disparity after cost switch')
-    want, _ = expected({**overrides, 'cost': 'sad', **values}, left, right)
+    want, _ = expected({**overrides, 'cost': 'sad', 'sad.P2': 20.0}, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
+
+    # Values that cross (as `ros2 param load` sets P1 before P2) are taken and wait.
+    assert all(r.successful for r in harness.set_params({'sad.P1': 30.0}))
+    assert harness.node.params.pipeline.config.p1 == 0.02  # the last consistent values
+    assert harness.node.params.pending == ['sad: P2 (20.0) must be >= P1 (30.0)']
+    assert any('waiting for that, the node keeps its last consistent values' in m
+               for m in harness.error_logs('WARN'))
+    assert harness.node.get_parameter('sad.P1').value == 30.0
+    assert all(r.successful for r in harness.set_params({'sad.P2': 40.0}))
+    config = harness.node.params.pipeline.config
+    assert (config.p1, config.p2, harness.node.params.pending) == (30.0, 40.0, [])
 
 
 def test_bad_input_is_logged_and_survived(harness, pair):
@@ -283,6 +333,232 @@ def test_bad_input_is_logged_and_survived(harness, pair):
     wait_for(lambda: harness.disparity, 'disparity after bad input')
 
 
+# ---- outputs as consumers read them, diagnostics, input kinds, load ------------------------
+F, BASELINE, CX_OFFSET = 210.0, 0.12, 2.5
+
+
+def rectified_infos(shape, baseline=BASELINE):
+    """Return the CameraInfo fields of a rectified pair, principal points CX_OFFSET apart."""
+    h, w = shape[:2]
+    infos = {}
+    for side, cx, tx in (('left', w / 2, 0.0), ('right', w / 2 - CX_OFFSET, -F * baseline)):
+        infos[side] = {'width': w, 'height': h, 'distortion_model': 'plumb_bob', 'd': [0.0] * 5,
+                       'k': [F, 0.0, cx, 0.0, F, h / 2, 0.0, 0.0, 1.0],
+                       'r': [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                       'p': [F, 0.0, cx, tx, 0.0, F, h / 2, 0.0, 0.0, 0.0, 1.0, 0.0]}
+    return infos
+
+
+def image_geometry_q(left_info, right_info):
+    """Return the Q of image_geometry's StereoCameraModel::updateQ, written out here."""
+    pl, pr = (np.reshape(i['p'], (3, 4)) for i in (left_info, right_info))
+    fx, fy, cx, cy = pl[0, 0], pl[1, 1], pl[0, 2], pl[1, 2]
+    tx = pr[0, 3] / pr[0, 0]  # -baseline
+    return np.array([[fy * tx, 0, 0, -fy * cx * tx], [0, fx * tx, 0, -fx * cy * tx],
+                     [0, 0, 0, fx * fy * tx], [0, 0, -fy, fy * (cx - pr[0, 2])]])
+
+
+def floats(msg):
+    """Return the float32 pixels of a 32FC1 Image, NaN included (image_to_array refuses NaN)."""
+    assert msg.encoding == '32FC1' and msg.step == 4 * msg.width
+    return np.frombuffer(msg.data, '<f4').reshape(msg.height, msg.width)
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_depth_and_points2_equal_opencv_reprojection(harness, pair, monkeypatch):
+    left, right = pair
+    h, w = left.shape[:2]
+    infos = rectified_infos(left.shape)
+    for side in ('left', 'right'):
+        harness.send_info(side, infos[side], 1)
+    depth_calls = []
+    real_depth = StereoModel.depth
+    monkeypatch.setattr(StereoModel, 'depth',
+                        lambda model, d: depth_calls.append(1) or real_depth(model, d))
+    harness.send_pair(left, right, 'rgb8', 2_000_000_000)
+    wait_for(lambda: harness.disparity, 'disparity')
+    assert not depth_calls  # nobody subscribes depth or points2: neither is computed
+    depth, points = harness.listen('depth', Image), harness.listen('points2', PointCloud2)
+    harness.send_pair(left, right, 'rgb8', 3_000_000_000)
+    wait_for(lambda: depth and points and len(harness.disparity) == 2, 'depth and points2')
+    raw = StereoPipeline(config_from_params(harness.overrides))(left, right).disparity
+
+    disp_msg = harness.disparity[-1]  # as consumers read a DisparityImage: Z = f * t / d
+    assert (disp_msg.f, disp_msg.t, disp_msg.delta_d) == (F, pytest.approx(BASELINE), 1.0)
+    assert (disp_msg.min_disparity, disp_msg.max_disparity) == (-CX_OFFSET,
+                                                                MAX_DISP - 1 - CX_OFFSET)
+    np.testing.assert_array_equal(image_to_array(disp_msg.image),
+                                  np.where(np.isnan(raw), -CX_OFFSET - 1, raw - CX_OFFSET))
+    roi = disp_msg.valid_window  # every window and searched disparity inside both images
+    assert (roi.x_offset, roi.y_offset, roi.width, roi.height) == (
+        MAX_DISP - 1 + 4, 4, w - 4 - (MAX_DISP - 1 + 4), h - 8)
+    for name, pub in harness.node._pubs.items():  # as image_pipeline's on Jazzy
+        qos = pub.qos_profile
+        assert (qos.reliability, qos.depth) == (ReliabilityPolicy.RELIABLE, 1), name
+        assert harness.node.has_parameter(f'qos_overrides./{name}.publisher.depth')
+
+    xyz = cv2.reprojectImageTo3D(raw, image_geometry_q(infos['left'], infos['right']))
+    valid = np.isfinite(raw) & (raw > CX_OFFSET)
+    assert 0.5 < valid.mean() < 1
+    z = floats(depth[-1])
+    assert depth[-1].header.frame_id == 'left_camera'
+    np.testing.assert_allclose(z[valid], xyz[..., 2][valid], rtol=1e-5)
+    assert np.isnan(z[~valid]).all()
+    cloud = points[-1]
+    assert (cloud.height, cloud.width, cloud.point_step, cloud.row_step, cloud.is_dense) == (
+        h, w, 32, 32 * w, False)
+    assert [(f.name, f.offset, f.datatype, f.count) for f in cloud.fields] == [
+        ('x', 0, 7, 1), ('y', 4, 7, 1), ('z', 8, 7, 1), ('rgb', 16, 7, 1)]
+    data = np.frombuffer(cloud.data, np.float32).reshape(h, w, 8)
+    np.testing.assert_allclose(data[..., :3][valid], xyz[valid], rtol=1e-5, atol=1e-6)
+    assert np.isnan(data[..., :3][~valid]).all()
+    bgra = data[..., 4].copy().view(np.uint8).reshape(h, w, 4)  # packed as b, g, r, 0
+    np.testing.assert_array_equal(bgra[..., :3], left[..., ::-1])
+    assert not bgra[..., 3].any()
+
+    for stamp, change, step, names in ((4, {'avoid_point_cloud_padding': True}, 16, 'xyzr'),
+                                       (5, {'use_color': False}, 12, 'xyz'),
+                                       (6, {'avoid_point_cloud_padding': False}, 16, 'xyz')):
+        assert all(r.successful for r in harness.set_params(change))
+        harness.send_pair(left, right, 'rgb8', stamp * 1_000_000_000)
+        wait_for(lambda: points and stamp_of(points[-1]) == stamp * 1_000_000_000, 'points2')
+        assert points[-1].point_step == step
+        assert ''.join(f.name[0] for f in points[-1].fields) == names
+        assert [f.offset for f in points[-1].fields] == [0, 4, 8, 12][:len(names)]
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_no_calibration_gives_one_warning_and_no_depth(harness, pair):
+    left, right = pair
+    depth = harness.listen('depth', Image)
+    harness.send_pair(left, right, 'rgb8', 1_000_000_000, frame_id='')
+    wait_for(lambda: harness.disparity, 'disparity without camera_info')
+    for side, fields in rectified_infos(left.shape, baseline=-BASELINE).items():
+        harness.send_info(side, fields, 2_000_000_000)
+    for stamp in (3_000_000_000, 4_000_000_000):
+        harness.send_pair(left, right, 'rgb8', stamp)
+        wait_for(lambda: stamp_of(harness.disparity[-1]) == stamp, 'disparity')
+    warnings = harness.error_logs('WARN')
+    assert sum('no depth or points2: no left camera_info received' in m for m in warnings) == 1
+    assert sum('camera_info ignored (no f, t, depth or points2): baseline T' in m
+               and 'not positive' in m for m in warnings) == 1, warnings
+    assert sum('/left/image_rect: empty frame_id' in m for m in warnings) == 1
+    assert not depth and harness.disparity[-1].t == 0.0  # no depth, no made-up geometry
+
+
+def status_of(array_msg):
+    status, = array_msg.status
+    return status, {kv.key: kv.value for kv in status.values}
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_diagnostics_say_what_is_wrong(harness, pair):
+    left, right = pair
+    diagnostics = harness.listen('/diagnostics', DiagnosticArray)
+    harness.send_pair(left, right, 'rgb8', 1_000_000_000)
+    wait_for(lambda: harness.disparity, 'disparity')
+    wait_for(lambda: any(status_of(d)[1]['pairs processed'] == '1' for d in diagnostics),
+             'diagnostics after one pair')
+    status, values = status_of(diagnostics[-1])
+    assert status.level == DiagnosticStatus.OK and status.name == 'gcp_stereo_node: stereo'
+    assert {'left images/s', 'right images/s', 'pairs processed/s', 'pairs dropped stale',
+            'latency s (stamp to publish), mean', 'images dropped unmatched, left', 'errors',
+            'device', 'weights'} <= set(values)
+    assert (values['device'], values['left topic']) == ('cpu', '/left/image_rect')
+
+    def warned(*words):
+        return any(status_of(d)[0].level == DiagnosticStatus.WARN
+                   and all(w in status_of(d)[0].message for w in words) for d in diagnostics)
+
+    stamp = 2_000_000_000  # only the left camera publishes
+    while not warned('no image on /right/image_rect', '/left/image_rect gets'):
+        assert stamp < 12_000_000_000, [status_of(d)[0].message for d in diagnostics]
+        harness.send('left', left, 'rgb8', stamp)
+        stamp += 200_000_000
+        time.sleep(0.2)
+    while not warned('both arrive but their stamps never match', 'approximate_sync'):
+        assert stamp < 24_000_000_000, [status_of(d)[0].message for d in diagnostics]
+        harness.send_pair(left, right, 'rgb8', stamp, right_stamp_ns=stamp + 30_000_000)
+        stamp += 200_000_000
+        time.sleep(0.2)
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_compressed_input(harness, pair):
+    left, right = pair
+    assert all(r.successful for r in harness.set_params({'image_transport': 'compressed'}))
+    assert harness.node.input.topics() == {'left': '/left/image_rect/compressed',
+                                           'right': '/right/image_rect/compressed'}
+    want, _ = expected(harness.overrides, left, right)
+    for stamp, fmt in ((1_000_000_000, 'png'), (2_000_000_000, 'jpeg')):
+        for side, image in (('left', left), ('right', right)):
+            fields = array_to_compressed_fields(image, fmt)
+            msg = CompressedImage(format=fields['format'], data=fields['data'].tobytes())
+            msg.header.stamp.sec = stamp // 1_000_000_000
+            harness.publish(f'{side}/image_rect/compressed', msg)
+        wait_for(lambda: harness.disparity and stamp_of(harness.disparity[-1]) == stamp, fmt)
+    png, jpeg = (image_to_array(m.image) for m in harness.disparity)
+    np.testing.assert_array_equal(png, want)  # lossless: exactly the raw images' disparity
+    assert 0 < (np.abs(jpeg - want) > 1).mean() < 0.15  # lossy, and still the same scene
+    bad = CompressedImage(format='rgb8; png compressed bgr8', data=b'not a png at all')
+    bad.header.stamp.sec = 3
+    for side in ('left', 'right'):
+        harness.publish(f'{side}/image_rect/compressed', bad)
+    wait_for(lambda: any('/left/image_rect/compressed: 16 bytes of format' in m
+                         for m in harness.error_logs()), 'decode error')
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False, 'rectify': True}], indirect=True)
+def test_rectify_raw_input(harness, distorted_pair):
+    """The node rectifies as `gcp-stereo-bag run --rectify` (accuracy: test_bag)."""
+    assert harness.node.input.topics() == {'left': '/left/image_raw',
+                                           'right': '/right/image_raw'}
+    rectifier, rectified = Rectifier(), {}
+    for side in ('left', 'right'):
+        info = CameraInfo(**distorted_pair.info[side])
+        harness.send_info(side, distorted_pair.info[side], 1)
+        rectified[side] = rectifier(side, info, distorted_pair.raw[side])
+        fields = array_to_image_fields(distorted_pair.raw[side], 'rgb8')
+        msg = Image(**{**fields, 'data': fields['data'].tobytes()})
+        msg.header.stamp.sec = 2
+        harness.publish(f'{side}/image_raw', msg)
+    wait_for(lambda: harness.disparity, 'disparity of the raw pair')
+    want, _ = expected(harness.overrides, rectified['left'], rectified['right'])
+    np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_a_looped_one_frame_bag_gives_output_on_every_pass(harness, pair):
+    for n in range(1, 4):  # what `play --loop` sends: the same stamps again and again
+        harness.send_pair(*pair, 'rgb8', 5_000_000_000)
+        wait_for(lambda: len(harness.disparity) == n, f'output of pass {n}')
+    assert {stamp_of(m) for m in harness.disparity} == {5_000_000_000}
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_a_busy_node_takes_no_images_then_the_newest(harness, pair, monkeypatch):
+    """Input the node cannot use costs it nothing: while it works, it takes no images."""
+    release = threading.Event()
+    process = StereoPipeline.__call__
+    monkeypatch.setattr(StereoPipeline, '__call__',
+                        lambda pipe, *a, **k: release.wait(60) and process(pipe, *a, **k))
+    harness.send_pair(*pair, 'rgb8', 1_000_000_000)
+    wait_for(lambda: not harness.node._worker.idle, 'processing')
+    taken = dict(harness.node.input.received)
+    newest = 0
+    for i in range(50):  # 50 pairs while the node works
+        newest = 2_000_000_000 + i * 10_000_000
+        harness.send_pair(*pair, 'rgb8', newest)
+        time.sleep(0.01)
+    time.sleep(0.5)
+    assert harness.node.input.received == taken
+    release.set()
+    wait_for(lambda: len(harness.disparity) == 2, 'the newest pair')
+    assert stamp_of(harness.disparity[-1]) == newest
+    assert {s: harness.node.input.received[s] - taken[s] for s in taken} == {'left': 1, 'right': 1}
+
+
+# ---- reliability: errors, memory, start-up, shutdown --------------------------------------
 def test_errors_are_rate_limited_by_reason(harness, pair):
     left, right = pair
     small = np.ascontiguousarray(right[:100])
@@ -290,20 +566,23 @@ def test_errors_are_rate_limited_by_reason(harness, pair):
         harness.send('left', left, 'rgb8', 50_000_000_000 + i * 50_000_000)
         harness.send('right', small, 'rgb8', 50_000_000_000 + i * 50_000_000)
         time.sleep(0.05)
-    wait_for(lambda: harness.node.errors + harness.node.stats['stale'] == 12, '12 errors')
+    wait_for(lambda: harness.node.errors >= 1 and harness.node._worker.idle, 'the errors')
+    time.sleep(0.5)
+    assert harness.node.errors >= 6  # the node takes the newest pair when idle
     lines = harness.error_logs()
     assert len(lines) == 1 and 'skipping pair' in lines[0] and 'stamp 50000000000 ns' in lines[0]
 
 
 def test_worker_survives_a_failure_to_publish(harness, pair):
-    publish, failures = harness.node._pub_disp.publish, []
+    publisher = harness.node._pubs['disparity']
+    publish, failures = publisher.publish, []
 
     def fail_once(msg):
         if not failures:
             failures.append(msg)
             raise RuntimeError('transport gone')
         publish(msg)
-    harness.node._pub_disp.publish = fail_once
+    publisher.publish = fail_once
     harness.send_pair(*pair, 'rgb8', 60_000_000_000)
     wait_for(lambda: any('cannot publish the outputs: transport gone' in m
                          for m in harness.error_logs()), 'the publishing error')
@@ -312,57 +591,56 @@ def test_worker_survives_a_failure_to_publish(harness, pair):
     assert stamp_of(harness.disparity[-1]) == 61_000_000_000
 
 
-def camera_info(stamp_ns, size, fx, cx, tx):
-    info = CameraInfo(width=size[1], height=size[0])
-    info.header.stamp.sec, info.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-    info.p = [fx, 0.0, cx, tx, 0.0, fx, size[0] / 2, 0.0, 0.0, 0.0, 1.0, 0.0]
-    return info
+def test_worker_thread_outlives_any_exception():
+    done, errors, quiet = [], [], threading.Event()
+
+    def process(x):
+        done.append(1 / x)
+    worker = NewestWorker(process, 'test_worker', errors.append, on_quiet=quiet.set,
+                          quiet_seconds=0.2)
+    worker.put((0,))  # ZeroDivisionError
+    wait_for(lambda: errors, 'the error', 5)
+    worker.put((4,))
+    wait_for(lambda: done == [0.25], 'the next item', 5)
+    assert quiet.wait(5)  # and on_quiet once it has been quiet for 0.2 s
+    assert isinstance(errors[0], ZeroDivisionError) and worker.stop(5)
 
 
-def test_camera_info_is_checked(harness, pair):
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_bad_camera_info_is_said_and_ignored(harness, pair):
+    """A camera_info that cannot be right is named in a warning; no f, t, depth from it."""
     left, right = pair
-    size = left.shape[:2]
-    pubs = {s: harness.peer.create_publisher(CameraInfo, f'{s}/camera_info',
-                                             qos_profile_sensor_data) for s in ('left', 'right')}
-    wait_for(lambda: all(p.get_subscription_count() for p in pubs.values()), 'camera_info subs')
-    cases = [  # (right fx, left cx, right cx, right Tx), reason
-        ((500.0, 120.0, 120.0, -50.0), None),
-        ((500.0, float('nan'), 120.0, -50.0), 'NaN'),
-        ((500.0, 120.0, 120.0, 0.0), 'baseline'),
-        ((500.0, 120.0, 120.0, 30.0), 'baseline'),
-        ((1e300, 120.0, 120.0, -1e300), 'float32'),
-        ((500.0, 120.0, 420.0, -50.0), 'principal points differ by -300'),
+    good = rectified_infos(left.shape)
+    cases = [  # (side, P index or field, value, reason)
+        ('right', 2, float('nan'), 'P is not finite'),
+        ('right', 3, 0.0, 'baseline T = -P_right[0,3] / P_right[0,0] = 0 is not positive'),
+        ('right', 2, left.shape[1] / 2 + 300, 'principal points are -300 px apart'),
+        ('left', 0, 1e300, 'does not fit the float32'),
+        ('right', 'height', left.shape[0] + 2, 'right camera_info is for 247x169 images'),
     ]
-    for i, ((fx, cx_left, cx_right, tx), reason) in enumerate(cases):
-        stamp = 70_000_000_000 + i * 1_000_000_000
-        pubs['left'].publish(camera_info(stamp, size, fx, cx_left, 0.0))
-        pubs['right'].publish(camera_info(stamp, size, fx, cx_right, tx))
-        wait_for(lambda: all(m is not None and stamp_of(m) == stamp
-                             for m in harness.node.input.info.values()), 'camera_info')
-        harness.send_pair(left, right, 'rgb8', stamp)
-        if reason is None:
-            wait_for(lambda: harness.disparity, 'disparity with camera_info')
-            assert harness.disparity[-1].f == 500.0
-            assert harness.disparity[-1].t == pytest.approx(0.1)
+    for i, (side, where, value, reason) in enumerate(cases):
+        infos = {s: dict(fields) for s, fields in good.items()}
+        if isinstance(where, str):
+            infos[side][where] = value
         else:
-            wait_for(lambda: any(reason in m and 'camera_info' in m
-                                 for m in harness.error_logs()), reason)
-    pubs['left'].publish(camera_info(90_000_000_000, (size[0] + 2, size[1]), 500.0, 120.0, 0.0))
-    pubs['right'].publish(camera_info(90_000_000_000, size, 500.0, 120.0, -50.0))
-    wait_for(lambda: all(stamp_of(m) == 90_000_000_000
-                         for m in harness.node.input.info.values()), 'camera_info')
-    harness.send_pair(left, right, 'rgb8', 90_000_000_000)
-    wait_for(lambda: any(f'left camera_info is for {size[1]}x{size[0] + 2} images' in m
-                         for m in harness.error_logs()), 'the size mismatch')
-    assert len(harness.disparity) == 1
+            infos[side]['p'] = [value if j == where else v for j, v in enumerate(good[side]['p'])]
+        stamp = (i + 1) * 1_000_000_000
+        for s in ('left', 'right'):
+            harness.send_info(s, infos[s], stamp)
+        harness.send_pair(left, right, 'rgb8', stamp)
+        wait_for(lambda: harness.disparity and stamp_of(harness.disparity[-1]) == stamp, reason)
+        assert (harness.disparity[-1].f, harness.disparity[-1].t) == (0.0, 0.0)
+        wait_for(lambda: any('camera_info ignored' in m and reason in m
+                             for m in harness.error_logs('WARN')), reason)
 
 
 def test_images_larger_than_the_shared_memory_segment_are_warned_about(harness):
-    pub = harness.peer.create_publisher(CameraInfo, 'left/camera_info', qos_profile_sensor_data)
-    wait_for(lambda: pub.get_subscription_count(), 'camera_info subscription')
-    pub.publish(camera_info(1, (4320, 8192), 500.0, 4096.0, 0.0))  # 34 MiB as mono8
-    wait_for(lambda: '8192x4320 images, 34 MiB' in harness.log('WARN'), 'the warning')
-    assert 'larger than the 32 MiB shared-memory segment' in harness.log('WARN')
+    info = rectified_infos((4320, 8192))['left']  # 34 MiB even as mono8
+    harness.send_info('left', info, 1)
+    wait_for(lambda: any('8192x4320 images, 34 MiB' in m for m in harness.error_logs('WARN')),
+             'the warning')
+    assert any('larger than the 32 MiB shared-memory segment' in m
+               for m in harness.error_logs('WARN'))
 
 
 @pytest.mark.parametrize('harness', [{'memory_limit_mb': 64}], indirect=True)
@@ -370,10 +648,10 @@ def test_a_pair_over_the_memory_limit_is_refused(harness, pair):
     """
     Check that a pair over memory_limit_mb is refused and the node keeps serving.
 
-    A 247x167 pair needs about 70 MB at max_disparity 240 (two uint16 volumes of 19 MB and
+    A 247x167 pair needs about 68 MB at max_disparity 240 (two uint16 volumes of 19 MB and
     the CNN's strip).
     """
-    assert all(r.successful for r in harness.set_params(max_disparity=240))
+    assert all(r.successful for r in harness.set_params({'max_disparity': 240}))
     harness.send_pair(*pair, 'rgb8', 80_000_000_000)
     wait_for(lambda: any('247x167 at max_disparity 240 needs about' in m
                          for m in harness.error_logs()), 'the memory refusal')
@@ -382,31 +660,30 @@ def test_a_pair_over_the_memory_limit_is_refused(harness, pair):
     assert 'raise downsample' in line
     fits = int(line.split('(at most ')[1].split()[0])
     assert 100 < fits < 240
-    assert all(r.successful for r in harness.set_params(max_disparity=fits))
+    assert all(r.successful for r in harness.set_params({'max_disparity': fits}))
     harness.send_pair(*pair, 'rgb8', 81_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity within the limit')
 
 
-def test_arrays_are_let_go_when_idle(harness, pair):
+def test_arrays_are_let_go_when_quiet(harness, pair):
     harness.send_pair(*pair, 'rgb8', 85_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity')
     assert harness.node.params.pipeline._workspace  # kept for the next frame ...
     wait_for(lambda: not harness.node.params.pipeline._workspace, 'arrays let go', 5)
 
 
-@pytest.mark.parametrize('harness', [{'thetta': 0.5, 'use_gcp': False}], indirect=True)
-def test_misspelled_and_useless_parameters_are_reported(harness):
-    harness.set_params(use_gcp=True, theta=0.9)
-    wait_for(lambda: 'selects no GCP' in harness.log('WARN'), 'theta warning')
-    assert "ignoring unknown parameter(s) 'thetta' (did you mean 'theta'?)" in harness.log('WARN')
-    (result,) = harness.set_params(device='cudafoo')
-    assert not result.successful and 'cudafoo' in result.reason
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_a_theta_no_pixel_can_reach_is_warned_about(harness):
+    harness.set_params({'use_gcp': True, 'census.theta': 0.9})  # the weights reach 0.842
+    wait_for(lambda: any('theta 0.9 selects no GCP' in m for m in harness.error_logs('WARN')),
+             'theta warning')
 
 
 @pytest.mark.parametrize('settings, reason', [
     ({'weights': '/no/such/weights.pt'}, '/no/such/weights.pt'),
-    ({'device': 'cuda', 'use_gcp': False}, "device 'cuda': this machine has no CUDA GPU"),
-    ({'theta': 'high'}, 'theta'),
+    ({'device': 'cuda', 'use_gcp': False}, "device 'cuda'"),
+    ({'census.theta': 'high'}, 'census.theta'),
+    ({'thetta': 0.5}, "unknown parameter(s) ['thetta'] (did you mean 'census.theta'?)"),
 ])
 def test_bad_start_up_settings_stop_the_node(ros, settings, reason):
     if 'device' in settings and torch_cuda():
@@ -422,7 +699,7 @@ def torch_cuda():
 
 def test_console_script_refuses_bad_start_up_in_one_line(tmp_path):
     bad_yaml = tmp_path / 'bad.yaml'
-    bad_yaml.write_text('gcp_stereo_node:\n  ros__parameters:\n    theta: [1,\n')
+    bad_yaml.write_text('gcp_stereo_node:\n  ros__parameters:\n    max_disparity: [1,\n')
     for args, reason in [
         (['-p', 'weights:=/no/such/weights.pt'], 'GCP CNN weights not found: /no/such/weights.pt'),
         (['--params-file', str(tmp_path / 'missing.yaml')], 'missing.yaml'),
@@ -432,7 +709,8 @@ def test_console_script_refuses_bad_start_up_in_one_line(tmp_path):
                               text=True, timeout=60)
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1, proc.stderr
-        assert lines[0].startswith('gcp_stereo_node: error: cannot start: ') and reason in lines[0]
+        assert lines[0].startswith('gcp_stereo_node: error: cannot start: ')
+        assert reason in lines[0], lines[0]
 
 
 def cpu_seconds(pid):
@@ -493,17 +771,3 @@ def test_node_process_stops_within_2_s_mid_frame(ros, data_dir, signals):
         peer.destroy_node()
     assert code == 0 and seconds < 2.0, (code, seconds)
     assert big not in map(stamp_of, disparity)  # nothing of the stopped frame
-
-
-def test_worker_thread_outlives_any_exception():
-    done, errors, idle = [], [], threading.Event()
-
-    def process(x):
-        done.append(1 / x)
-    worker = NewestWorker(process, 'test_worker', errors.append, idle.set, idle_seconds=0.2)
-    worker.put((0,))  # ZeroDivisionError
-    wait_for(lambda: errors, 'the error', 5)
-    worker.put((4,))
-    wait_for(lambda: done == [0.25], 'the next item', 5)
-    assert idle.wait(5)  # and on_idle once it has been idle for 0.2 s
-    assert isinstance(errors[0], ZeroDivisionError) and worker.stop(5)

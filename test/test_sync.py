@@ -22,10 +22,11 @@ def test_exact_drops_and_counts_unmatched_stamps():
     assert sync.add('left', 200, 'L200') is None
     assert sync.add('right', 200, 'R200') == (200, 'L200', 'R200')
     assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (1, 1, 1)
-    # Older than the emitted pair: can never pair any more, discarded on arrival.
+    # Older than the emitted pair, from one side only: a straggler, dropped at the next pair.
     assert sync.add('left', 101, 'L101') is None
-    assert sync.add('right', 200, 'R200 again') is None
-    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (1, 2, 2)
+    assert sync.add('left', 300, 'L300') is None
+    assert sync.add('right', 300, 'R300') == (300, 'L300', 'R300')
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (2, 2, 1)
 
 
 def test_exact_out_of_order_arrival():
@@ -59,7 +60,9 @@ def test_pair_discards_everything_older_on_both_sides():
     assert sync.add('right', 400, 'R400') == (400, 'L400', 'R400')
     assert (sync.dropped_left, sync.dropped_right) == (2, 2)
     assert sync.add('left', 250, 'L250') is None  # R250 was discarded
-    assert sync.dropped_left == 3
+    assert sync.add('left', 500, 'L500') is None
+    assert sync.add('right', 500, 'R500') == (500, 'L500', 'R500')
+    assert sync.dropped_left == 3  # L250, a straggler, at this pair
 
 
 def test_exact_ignores_tolerance():
@@ -121,8 +124,10 @@ def test_unmatched_streak_grows_while_one_side_is_missing():
     assert sync.add('right', 5, 'R5') == (5, 'L5', 'R5')
     assert (sync.dropped_left, sync.dropped_right) == (5, 1)
     assert sync.unmatched_streak('left') == sync.unmatched_streak('right') == 0
-    sync.add('right', 4, 'R4')  # older than the pair
-    assert sync.unmatched_streak('right') == 1
+    sync.add('right', 4, 'R4')  # older than the pair: dropped at the next one
+    sync.add('left', 6, 'L6')
+    assert sync.add('right', 6, 'R6') == (6, 'L6', 'R6')
+    assert sync.dropped_right == 2 and sync.unmatched_streak('right') == 0
 
 
 @pytest.mark.parametrize('kwargs, reason', [
@@ -150,10 +155,34 @@ def test_stream_restart_starts_pairing_afresh():
     sync = PairSync()
     assert sync.add('left', 50_000_000_000, 'l1') is None
     assert sync.add('right', 50_000_000_000, 'r1') == (50_000_000_000, 'l1', 'r1')
-    assert sync.add('left', 49_900_000_000, 'late') is None  # a straggler: dropped
+    assert sync.add('left', 49_900_000_000, 'late') is None  # one side back: a straggler
+    assert sync.add('left', 1_000_000_000, 'l2') is None  # it replaces the straggler
     assert sync.dropped_left == 1
-    assert sync.add('left', 1_000_000_000, 'l2') is None  # 49 s back: a looped bag
-    assert sync.add('right', 1_000_000_000, 'r2') == (1_000_000_000, 'l2', 'r2')
+    assert sync.add('right', 1_000_000_000, 'r2') == (1_000_000_000, 'l2', 'r2')  # both back
+
+
+@pytest.mark.parametrize('approximate', [False, True])
+def test_looped_one_frame_bag_pairs_on_every_pass(approximate):
+    """A one-frame bag played with --loop repeats one stamp: every pass is a pair."""
+    sync = PairSync(approximate=approximate, tolerance=0.01)
+    for n in range(1, 6):
+        assert sync.add('left', 7 * MS, f'L{n}') is None
+        assert sync.add('right', 7 * MS, f'R{n}') == (7 * MS, f'L{n}', f'R{n}')
+    assert (sync.pairs, sync.dropped_left, sync.dropped_right) == (5, 0, 0)
+
+
+def test_looped_short_bag_pairs_every_frame_of_every_pass():
+    """Three frames 0.1 s apart, looped: each pass starts 0.2 s before the last pair."""
+    sync = PairSync()
+    got = []
+    for _ in range(4):
+        for stamp in (0, 100 * MS, 200 * MS):
+            for side in ('left', 'right'):
+                pair = sync.add(side, stamp, side)
+                if pair is not None:
+                    got.append(pair[0])
+    assert got == [0, 100 * MS, 200 * MS] * 4
+    assert (sync.dropped_left, sync.dropped_right) == (0, 0)
 
 
 def test_queues_are_bounded_in_bytes_too():

@@ -3,15 +3,16 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
 
-from .params import (BY_NAME, config_from_params, config_warnings, cost_defaults, make_sync,
-                     PARAMS, SYNC_PARAMS)
-from ..stereo.cost import COSTS
+from .params import (BY_NAME, check_names, coerce, config_from_params, config_warnings,
+                     inconsistencies, make_sync, PARAMS, RCLPY_PARAMS, uncrossed)
 from ..stereo.pipeline import StereoPipeline
 
 
 def descriptor(param):
-    """Describe a `params.Param` for ROS: its description and range."""
+    """Describe a `params.Param` for ROS: its description, range or choices."""
     desc = ParameterDescriptor(description=param.description, dynamic_typing=param.dynamic)
+    if param.choices:
+        desc.additional_constraints = 'one of ' + ', '.join(map(str, param.choices))
     if param.range is not None:
         low, high, step = param.range
         if isinstance(param.default, int):
@@ -22,48 +23,66 @@ def descriptor(param):
     return desc
 
 
-def config_of(values):
-    """Build the StereoConfig of ROS-named values (node-only parameters left out)."""
-    return config_from_params({n: v for n, v in values.items() if BY_NAME[n].field})
+def _declare(node, param):
+    """
+    Declare `param` with the start-up value given for it (`-p`, a params file), if any.
+
+    The node has declared every start-up value as it came (untyped), so that none goes
+    unnoticed; a whole number for a decimal parameter (`-p census.P1:=3`, `P1: 4` in a file),
+    which rclpy refuses for a double, is read here and declared as the parameter's type.
+    """
+    value = param.default
+    if node.has_parameter(param.name):
+        value = node.get_parameter(param.name).value
+        node.undeclare_parameter(param.name)
+    node.declare_parameter(param.name, coerce(param.name, value), descriptor(param),
+                           ignore_override=True)
 
 
 class LiveParameters:
     """
     Declare the node's parameters and keep `values` and `pipeline` in step with them.
 
+    A start-up value for a name the node does not have, and start-up values the pipeline
+    cannot be built with (a missing weights file, an absent GPU), are refused (ValueError).
     A request is validated whole, by building the pipeline it asks for (a missing weights
-    file or an absent GPU is refused here, with its path or device), and applied only if
-    every value is valid; the start-up values are checked the same way and raise ValueError.
-    Switching `cost` brings that cost's theta, P1, P2, c_hi and c_low unless set in the
-    same request. `on_sync_change(values)` is called when a sync parameter changes. Valid
-    values that cannot work (a theta above any CNN confidence) are logged as warnings.
+    file is refused here, with its path), and refused with the reason if any value is
+    invalid. A theta above the CNN's highest confidence is warned about, at start-up and
+    when set. A
+    whole number set for a decimal parameter is taken as that decimal. No parameter changes
+    another. Values that cross within a cost (P1 > P2, c_low > c_hi), as when
+    `ros2 param load` sets P1 before P2, are accepted and wait, with a warning: the pipeline
+    keeps the last consistent values (`pending` says why) until a later value uncrosses
+    them. `on_change(names)` is called with the names whose values changed.
     """
 
-    def __init__(self, node, on_sync_change):
+    def __init__(self, node, on_change):
         self._node = node
-        self._on_sync_change = on_sync_change
-        # Cost-dependent parameters default to the chosen cost's values; overrides win.
-        cost = node.declare_parameter(
-            'cost', BY_NAME['cost'].default, descriptor(BY_NAME['cost'])).value
-        defaults = cost_defaults(cost) if cost in COSTS else {}
+        self._on_change = on_change
+        for name in node.list_parameters([], 0).names:
+            if name.startswith('qos_overrides.'):  # declared read-only with their topic
+                node.undeclare_parameter(name)
         for p in PARAMS:
-            if p.name != 'cost':
-                node.declare_parameter(p.name, defaults.get(p.name, p.default), descriptor(p))
+            _declare(node, p)
+        check_names(n for n in node.list_parameters([], 0).names  # a misspelled start-up name
+                    if n not in RCLPY_PARAMS and not n.startswith('qos_overrides.'))
         self.values = {p.name: node.get_parameter(p.name).value for p in PARAMS}
-        self.pipeline = self._build(self.values, StereoPipeline())
+        self.pipeline = StereoPipeline(config_from_params(self.values))
+        if self.pipeline.config.use_gcp:
+            self.pipeline.net  # a missing or broken weights file stops the start here
         self._warn()
+        self.pending = []
         self._candidate = None
-        node.add_pre_set_parameters_callback(self._complete_cost_switch)
+        node.add_pre_set_parameters_callback(self._decimals)
         node.add_on_set_parameters_callback(self._validate)
         node.add_post_set_parameters_callback(self._apply)
 
-    def _complete_cost_switch(self, params):
-        names = {p.name for p in params}
-        for p in params:
-            if p.name == 'cost' and p.value != self.values['cost'] and p.value in COSTS:
-                params += [Parameter(n, value=v) for n, v in cost_defaults(p.value).items()
-                           if n not in names]
-        return params
+    @staticmethod
+    def _decimals(params):
+        return [Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+                if (p.name in BY_NAME and p.type_ == Parameter.Type.INTEGER
+                    and isinstance(BY_NAME[p.name].default, float)) else p
+                for p in params]
 
     def _validate(self, params):
         changes = {p.name: p.value for p in params if p.name in BY_NAME}  # not qos_overrides.*
@@ -72,33 +91,32 @@ class LiveParameters:
             return SetParametersResult(successful=True)
         values = {**self.values, **changes}
         try:
-            pipeline = self._build(values, self.pipeline)
+            config = config_from_params(uncrossed(values))  # every value valid on its own
+            make_sync(values)
+            pipeline = self.pipeline.with_config(config)
+            if config.use_gcp:
+                pipeline.net
         except Exception as err:  # any invalid value is refused with its reason
             return SetParametersResult(successful=False, reason=str(err))
-        self._candidate = (values, pipeline)
-        return SetParametersResult(successful=True)
+        pending = inconsistencies(values)
+        self._candidate = (values, self.pipeline if pending else pipeline, pending)
+        return SetParametersResult(successful=True)  # rclpy drops a reason given with success
 
     def _apply(self, params):
         if self._candidate is None:
             return
-        values, self.pipeline = self._candidate
-        sync_changed = any(values[n] != self.values[n] for n in SYNC_PARAMS)
+        values, self.pipeline, self.pending = self._candidate
+        changed = [n for n in values if values[n] != self.values[n]]
         self.values = values
-        if sync_changed:
-            self._on_sync_change(values)
-        self._node.get_logger().info('parameters: ' + ', '.join(
+        if changed:
+            self._on_change(changed)
+        logger = self._node.get_logger()
+        logger.info('parameters: ' + ', '.join(
             f'{p.name}={p.value!r}' for p in params if p.name in BY_NAME))
+        if self.pending:
+            logger.warn('; '.join(self.pending) + ': waiting for that, the node keeps its last '
+                        f'consistent values: {self.pipeline.config}')
         self._warn()
-
-    @staticmethod
-    def _build(values, pipeline):
-        """Return `pipeline` with the config of `values`, its CNN loaded; raise if invalid."""
-        config = config_of(values)
-        make_sync(values)
-        pipeline = pipeline.with_config(config)
-        if config.use_gcp:
-            pipeline.net
-        return pipeline
 
     def _warn(self):
         for text in config_warnings(self.pipeline):

@@ -1,15 +1,19 @@
 """
 Output messages from pipeline results, ROS-free.
 
-`types` is any namespace with the message classes Image, DisparityImage and
-RegionOfInterest: rclpy's (sensor_msgs.msg / stereo_msgs.msg) in the node, rosbags' in the
-bag tools. Fields are passed by keyword, which both accept.
+`types` is any namespace with the message classes Image, DisparityImage, RegionOfInterest,
+PointCloud2 and PointField: rclpy's (sensor_msgs.msg / stereo_msgs.msg) in the node,
+rosbags' in the bag tools. Fields are passed by keyword, which both accept. `data`
+converts a uint8 numpy buffer to what the message class wants (array.array('B') for
+rclpy, the numpy array itself for rosbags).
 """
-from dataclasses import dataclass
-
 import numpy as np
 
 from .rosimage import array_to_image_fields
+from ..stereo.images import mask_image
+
+OUTPUTS = ('disparity', 'gcp_mask', 'confidence', 'depth', 'points2')
+FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
 
 
 def stamp_ns(header):
@@ -17,80 +21,98 @@ def stamp_ns(header):
     return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
 
 
-FLOAT32_MAX = float(np.finfo(np.float32).max)
+def _same(array):
+    return array
 
 
-@dataclass(frozen=True)
-class Geometry:
-    f: float = 0.0  # focal length in pixels (0 = unknown)
-    t: float = 0.0  # baseline in world units (0 = unknown)
-    cx_offset: float = 0.0  # cx_left - cx_right, subtracted from disparities
-
-
-def geometry(left_info, right_info, size, max_disp):
+def output_messages(types, header, wanted, result, config, model, left, use_color=True,
+                    padded=True, data=_same):
     """
-    Return the stereo geometry of a pair from its left and right sensor_msgs/CameraInfo.
+    Return {name: message} of the outputs in `wanted` (names of OUTPUTS) for one pair.
 
-    Either CameraInfo may be None if absent; P all zero in both means uncalibrated. Both
-    give Geometry(). Computed as stereo_image_proc does: f = right fx, t = -right Tx / fx.
-    Raises ValueError, naming the field, for a CameraInfo that does not fit the images of
-    `size` (height, width) matched with `max_disp` disparities: NaN or inf in P, another
-    image size, fx <= 0, a baseline t <= 0, principal points at least `max_disp` px apart
-    (the published disparities would leave the message's range), or f, t beyond float32.
+    `result` is the pipeline's StereoResult, `model` the camera.StereoModel (None: no
+    calibration, so no depth or points2 and f = t = 0), `left` the left image array the
+    pipeline matched (the colour of points2). gcp_mask and confidence exist only with GCPs.
     """
-    if left_info is None or right_info is None:
-        return Geometry()
-    p = {}
-    for side, info in (('left', left_info), ('right', right_info)):
-        p[side] = np.asarray(info.p, float)
-        if not np.isfinite(p[side]).all():
-            raise ValueError(f'{side} camera_info: P holds NaN or inf: {p[side].tolist()}')
-        if (info.height, info.width) != tuple(size):
-            raise ValueError(f'{side} camera_info is for {info.width}x{info.height} images, '
-                             f'the pair is {size[1]}x{size[0]}')
-    pl, pr = p['left'], p['right']
-    if not (pl.any() or pr.any()):
-        return Geometry()
-    if not (pl[0] > 0 and pr[0] > 0):
-        raise ValueError(f'camera_info: fx = P[0] must be > 0, got left {pl[0]:g}, '
-                         f'right {pr[0]:g}')
-    f, t, cx_offset = pr[0], -pr[3] / pr[0], pl[2] - pr[2]
-    if not t > 0:
-        raise ValueError(f'right camera_info: baseline -P[3] / fx = {t:g} must be > 0 '
-                         '(the right camera has P[3] = -fx * baseline)')
-    if abs(cx_offset) >= max_disp:
-        raise ValueError(f'camera_info: the principal points differ by {cx_offset:g} px '
-                         f'(left cx - right cx), not within max_disparity {max_disp}')
-    if not max(f, t) <= FLOAT32_MAX:
-        raise ValueError(f'camera_info: f {f:g} or baseline {t:g} does not fit the float32 '
-                         'fields of stereo_msgs/DisparityImage')
-    return Geometry(float(f), float(t), float(cx_offset))
+    out = {}
+    if 'disparity' in wanted:
+        out['disparity'] = disparity_message(types, header, result.disparity, config, model,
+                                             data)
+    if result.gcp is not None:
+        if 'gcp_mask' in wanted:
+            out['gcp_mask'] = image_message(types, header, mask_image(result.gcp), 'mono8',
+                                            data)
+        if 'confidence' in wanted:
+            out['confidence'] = image_message(types, header, result.cof_c, '32FC1', data)
+    if model is not None:
+        if 'depth' in wanted:
+            out['depth'] = image_message(types, header, model.depth(result.disparity),
+                                         '32FC1', data)
+        if 'points2' in wanted:
+            out['points2'] = points_message(types, header, model.points(result.disparity),
+                                            left if use_color else None, padded, data)
+    return out
 
 
-def disparity_message(types, header, disp, config, geom, data=lambda a: a):
+def disparity_message(types, header, disp, config, model=None, data=_same):
     """
-    Return a stereo_msgs/DisparityImage for a float32 disparity.
+    Return a stereo_msgs/DisparityImage for a float32 disparity x_left - x_right.
 
-    NaN = invalid, published as min_disparity - 1 as the message definition asks. `data`
-    converts the uint8 buffer to what the message class wants (array.array('B') for rclpy,
-    the numpy array for rosbags).
+    As stereo_image_proc: the published disparity is d - (cx_left - cx_right), so that
+    Z = f * t / d, with f and t of the camera model (0 without one), and min_disparity,
+    max_disparity bound the values the search could give. NaN = invalid, published as
+    min_disparity - 1 as the message definition asks. valid_window is the region where
+    the matching window and every searched disparity stay inside both images, in
+    full-size pixels when the pipeline matched at 1 / `config.downsample` resolution.
     """
-    border = config.window // 2
+    scale = config.downsample
+    border = config.window // 2 * scale
     h, w = disp.shape
-    out = disp - np.float32(geom.cx_offset) if geom.cx_offset else disp.copy()
-    out[np.isnan(out)] = -1.0
-    left = min(config.max_disp - 1 + border, w)
+    offset = np.float32(model.cx_offset if model is not None else 0.0)
+    low, high = -offset, np.float32(config.max_disp - 1) - offset
+    out = disp - offset
+    out[np.isnan(out)] = low - 1
+    left = min((config.matched_disp - 1) * scale + border, w)
     roi = types.RegionOfInterest(x_offset=left, y_offset=border, width=max(w - border - left, 0),
                                  height=max(h - 2 * border, 0), do_rectify=False)
     return types.DisparityImage(
         header=header, image=image_message(types, header, out, '32FC1', data),
-        f=geom.f, t=geom.t, valid_window=roi,
-        min_disparity=0.0, max_disparity=float(config.max_disp - 1),
-        delta_d=1.0 / 16 if config.subpixel else 1.0)
+        f=float(model.fx) if model is not None else 0.0,
+        t=float(model.baseline) if model is not None else 0.0,
+        valid_window=roi, min_disparity=float(low), max_disparity=float(high),
+        delta_d=scale / 16 if config.subpixel else float(scale))
 
 
-def image_message(types, header, array, encoding, data=lambda a: a):
+def image_message(types, header, array, encoding, data=_same):
     """Return a sensor_msgs/Image of a mono8 or 32FC1 array."""
     fields = array_to_image_fields(array, encoding)
     fields['data'] = data(fields['data'])
     return types.Image(header=header, **fields)
+
+
+def points_message(types, header, points, color=None, padded=True, data=_same):
+    """
+    Return an organized sensor_msgs/PointCloud2 of (H, W, 3) float32 points (NaN = invalid).
+
+    Laid out as stereo_image_proc's points2: float32 x, y, z, then with `color` ((H, W)
+    uint8 or uint16 gray, or (H, W, 3) uint8 RGB) an rgb field, a float32 whose bytes are
+    b, g, r, 0. `padded`: 16 bytes a point without colour, 32 with (x, y, z, pad, rgb,
+    pad); else 12 and 16.
+    """
+    h, w = points.shape[:2]
+    slots = (4 if padded else 3) + ((4 if padded else 1) if color is not None else 0)
+    cloud = np.zeros((h, w, slots), np.float32)
+    cloud[:, :, :3] = points
+    fields = [types.PointField(name=n, offset=4 * i, datatype=FLOAT32, count=1)
+              for i, n in enumerate('xyz')]
+    if color is not None:
+        c = np.asarray(color)
+        c = (c >> 8 if c.dtype == np.uint16 else c).astype(np.uint32)  # mono16: high byte
+        packed = c * 0x010101 if c.ndim == 2 else c[:, :, 0] << 16 | c[:, :, 1] << 8 | c[:, :, 2]
+        at = 4 if padded else 3
+        cloud[:, :, at] = packed.view(np.float32)
+        fields.append(types.PointField(name='rgb', offset=4 * at, datatype=FLOAT32, count=1))
+    return types.PointCloud2(
+        header=header, height=h, width=w, fields=fields, is_bigendian=False,
+        point_step=4 * slots, row_step=4 * slots * w, data=data(cloud.reshape(-1).view(np.uint8)),
+        is_dense=False)

@@ -1,11 +1,14 @@
 """
-gcp_stereo_node: disparity from synchronized rectified stereo images (CNN GCPs + SGM).
+gcp_stereo_node: disparity, depth and points from a stereo pair (CNN GCPs + SGM).
 
-Follows stereo_image_proc's disparity node. Subscribes `left/image_rect`, `right/image_rect`
-(mono8, mono16, rgb8, bgr8, rgba8, bgra8) and, when present, `left/camera_info`,
-`right/camera_info`; publishes, stamped with the left header, `disparity`
-(stereo_msgs/DisparityImage), `gcp_mask` (mono8, 255 = GCP) and `confidence` (32FC1 CNN
-confidence, only while subscribed). Parameters (config/gcp_stereo.yaml) are live.
+Follows stereo_image_proc's disparity and point_cloud nodes. Subscribes `left/image_rect`,
+`right/image_rect` (mono8, mono16, rgb8, bgr8, rgba8, bgra8; `<topic>/compressed` with
+`image_transport: compressed`; `left/image_raw`, `right/image_raw` with `rectify: true`)
+and `left/camera_info`, `right/camera_info`; publishes, stamped with the left header,
+`disparity` (stereo_msgs/DisparityImage), `gcp_mask` (mono8, 255 = GCP) and, only while
+subscribed, `confidence` (32FC1 CNN confidence), `depth` (32FC1 metres, REP 118) and
+`points2` (organized sensor_msgs/PointCloud2), and /diagnostics once a second.
+Parameters (config/gcp_stereo.yaml) are live.
 
 Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
 `python -m gcp_stereo_ros.node`, each with the usual `--ros-args`.
@@ -14,10 +17,10 @@ The node is three parts: `LiveParameters` (declare, validate, apply), `StereoInp
 (subscriptions and pairing) and a `NewestWorker` thread that processes the newest pair
 and publishes here, so parameter requests are served while a frame is being processed.
 
-Start-up settings that cannot work (invalid values, a missing weights file, `device: cuda`
-without a GPU, an unreadable params file) end the process with one line and exit code 2;
-unknown parameter names are reported as warnings. Ctrl-C or SIGTERM stops a frame in
-progress between two rows of a kernel or two CNN layers, so the process exits promptly.
+Start-up settings that cannot work (invalid values, unknown names, a missing weights file,
+`device: cuda` without a GPU, an unreadable params file) end the process with one line and
+exit code 2. Ctrl-C or SIGTERM stops a frame in progress between two rows of a kernel or
+two CNN layers, so the process exits promptly.
 """
 import array
 import gc
@@ -31,28 +34,33 @@ import traceback
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.utilities import remove_ros_args
-from sensor_msgs.msg import Image, RegionOfInterest
+from sensor_msgs.msg import Image, PointCloud2, PointField, RegionOfInterest
 from stereo_msgs.msg import DisparityImage
 
-from . import messages
+from .camera import Rectifier, stereo_model
+from .diagnostics import Diagnostics
 from .live_params import LiveParameters
-from .params import BY_NAME, check_params_files, describe_unknown, NODE_NAME
-from .rosimage import image_to_array
+from .messages import output_messages, OUTPUTS
+from .params import check_params_files, INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
+from .rosimage import message_to_array
 from .stereo_input import StereoInput
 from .worker import NewestWorker
 from ..stereo.cancel import CancelFlag, Cancelled
-from ..stereo.images import mask_image
 from ..stereo.pipeline import mmap_large_arrays
 
 LOG_PERIOD = 5.0  # seconds between two logs of the same text
 STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
+ON_DEMAND = ('confidence', 'depth', 'points2')  # computed only while subscribed
 
 
 class _Types:
     Image = Image
     RegionOfInterest = RegionOfInterest
     DisparityImage = DisparityImage
+    PointCloud2 = PointCloud2
+    PointField = PointField
 
 
 def _ros_data(buffer):
@@ -65,35 +73,62 @@ def _ros_data(buffer):
 class GcpStereoNode(Node):
 
     def __init__(self, **kwargs):
-        super().__init__(NODE_NAME, **kwargs)
+        # Every start-up value is declared, so LiveParameters sees (and refuses) unknown names.
+        super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True,
+                         **kwargs)
         self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
-        self.processed = 0
         self.errors = 0
-        self._cancel = CancelFlag()
-        self.stopped = False  # set by destroy_node: the worker thread has ended
-        try:  # raises for start-up values that cannot work (weights, device, ranges)
-            self.params = LiveParameters(self, on_sync_change=lambda v: self.input.reset_sync(v))
+        self.last_error = ''
+        try:  # raises for start-up values that cannot work (names, ranges, weights, device)
+            self.params = LiveParameters(self, on_change=self._on_params)
         except Exception:
             super().destroy_node()
             raise
-        self.input = StereoInput(self, self.params.values, on_pair=self._on_pair, log=self._log)
-        self._pub_disp = self.create_publisher(DisparityImage, 'disparity', 5)
-        self._pub_gcp = self.create_publisher(Image, 'gcp_mask', 5)
-        self._pub_conf = self.create_publisher(Image, 'confidence', 5)
-        self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
-        unknown = [n for n in self._parameter_overrides if not self.has_parameter(n)]
-        if unknown:
-            self.get_logger().warn(f'ignoring unknown parameter(s) '
-                                   f'{describe_unknown(unknown, BY_NAME)}')
+        self._cancel = CancelFlag()
+        self.stopped = False  # set by destroy_node: the worker thread has ended
         self._worker = NewestWorker(self._process, 'gcp_stereo_worker',
-                                    on_error=self._on_worker_error, on_idle=self._on_idle)
+                                    on_error=self._on_worker_error,
+                                    on_idle=lambda: self.input.wake(),
+                                    on_quiet=lambda: self.params.pipeline.release())
+        self.input = StereoInput(self, self.params.values, on_pair=self._on_pair,
+                                 idle=lambda: self._worker.idle, log=self._log)
+        # As image_pipeline's publishers on Jazzy: reliable, depth 1, QoS overridable.
+        qos = QoSOverridingOptions.with_default_policies()
+        types = {'disparity': DisparityImage, 'gcp_mask': Image, 'confidence': Image,
+                 'depth': Image, 'points2': PointCloud2}
+        self._pubs = {name: self.create_publisher(types[name], name, 1,
+                                                  qos_overriding_options=qos)
+                      for name in OUTPUTS}
+        self._rectifier = Rectifier()
+        self._warned = set()
+        self._latency = []
+        self.processed = 0
+        self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
+        self.diagnostics = Diagnostics(self)
         self.get_logger().info(f'ready: {self.params.pipeline.config}')
+
+    @property
+    def stale(self):
+        """Return the number of pairs dropped because a newer one came before processing."""
+        return self._worker.stale
 
     @property
     def stats(self):
         """Images received, pairs processed, pairs dropped as stale, errors."""
-        return {'received': self.input.received, 'processed': self.processed,
-                'stale': self._worker.stale, 'errors': self.errors}
+        return {'received': sum(self.input.received.values()), 'processed': self.processed,
+                'stale': self.stale, 'errors': self.errors}
+
+    def take_latencies(self):
+        """Return and forget the seconds from stamp to publish of the pairs since last call."""
+        latency, self._latency = self._latency, []
+        return latency
+
+    def _on_params(self, names):
+        values = self.params.values
+        if any(n in INPUT_PARAMS for n in names):
+            self.input.subscribe(values)
+        elif any(n in SYNC_PARAMS for n in names):
+            self.input.reset_sync(values)
 
     def _on_pair(self, stamp, left_msg, right_msg):
         self._worker.put((stamp, left_msg, right_msg))
@@ -107,6 +142,7 @@ class GcpStereoNode(Node):
         """
         if severity == 'error':
             self.errors += 1
+            self.last_error = text
         now = time.monotonic()
         last = self._last_log.setdefault(text, [-math.inf, 0])
         if now - last[0] < LOG_PERIOD:
@@ -118,47 +154,57 @@ class GcpStereoNode(Node):
         getattr(self.get_logger(), severity)(text + (f' ({"; ".join(notes)})' if notes else ''))
         self._last_log[text] = [now, 0]
 
+    def _warn_once(self, text):
+        if text not in self._warned:
+            self._warned.add(text)
+            self.get_logger().warn(text)
+
     def _process(self, stamp, left_msg, right_msg):
         pipeline = self.params.pipeline
+        values = self.params.values
         topics = self.input.topics()
+        info = dict(self.input.info)
         try:
-            left = image_to_array(left_msg, topics['left'])
-            right = image_to_array(right_msg, topics['right'])
-            geom = messages.geometry(self.input.info['left'], self.input.info['right'],
-                                     left.shape[:2], pipeline.config.max_disp)
+            left, right = (message_to_array(msg, topics[side])
+                           for side, msg in (('left', left_msg), ('right', right_msg)))
+            if values['rectify']:
+                left, right = (self._rectifier(side, info[side], image, topics[side])
+                               for side, image in (('left', left), ('right', right)))
             result = pipeline(left, right, cancel=self._cancel)
         except Cancelled:
             return  # shutting down
-        except Exception as err:  # bad input, camera_info, weights or memory: say why
+        except Exception as err:  # bad input or a pair over memory_limit_mb: say why
             self._log('error', f'skipping pair {topics["left"]} + {topics["right"]}: {err}',
                       f'stamp {stamp} ns')
             return
         try:
-            self._publish(left_msg.header, result, pipeline.config, geom)
+            self._publish(left_msg.header, result, pipeline.config, info, left, topics, values)
         except Exception as err:
             if self.context.ok():
                 self._log('error', f'cannot publish the outputs: {err}', f'stamp {stamp} ns')
             return  # else shutting down while this pair was in flight: nothing to send to
+        self._latency.append((self.get_clock().now().nanoseconds - stamp) / 1e9)
         self.processed += 1
         self._log_progress(result.seconds)
 
-    def _on_worker_error(self, err):
-        where = traceback.extract_tb(err.__traceback__)[-1]
-        self._log('error', f'unexpected {type(err).__name__} in the worker thread, which goes '
-                           f'on: {err} (at {where.filename}:{where.lineno})')
-
-    def _on_idle(self):
-        self.params.pipeline.release()
-
-    def _publish(self, header, result, config, geom):
-        self._pub_disp.publish(messages.disparity_message(
-            _Types, header, result.disparity, config, geom, _ros_data))
-        if result.gcp is not None:
-            self._pub_gcp.publish(messages.image_message(
-                _Types, header, mask_image(result.gcp), 'mono8', _ros_data))
-            if self._pub_conf.get_subscription_count() > 0:
-                self._pub_conf.publish(messages.image_message(
-                    _Types, header, result.cof_c, '32FC1', _ros_data))
+    def _publish(self, header, result, config, info, left, topics, values):
+        wanted = {'disparity', 'gcp_mask'} | {
+            n for n in ON_DEMAND if self._pubs[n].get_subscription_count() > 0}
+        try:
+            model = stereo_model(info['left'], info['right'], left.shape, config.max_disp)
+        except ValueError as err:
+            model = None
+            if None not in info.values():  # calibrated, but wrongly: say so while it lasts
+                self._log('warn', f'camera_info ignored (no f, t, depth or points2): {err}')
+            elif wanted & {'depth', 'points2'}:
+                self._warn_once(f'no depth or points2: {err}')
+        if not header.frame_id:
+            self._warn_once(f'{topics["left"]}: empty frame_id; outputs carry it as they are')
+        msgs = output_messages(_Types, header, wanted, result, config, model, left,
+                               values['use_color'], not values['avoid_point_cloud_padding'],
+                               _ros_data)
+        for name, msg in msgs.items():
+            self._pubs[name].publish(msg)
 
     def _log_progress(self, seconds):
         w = self._window
@@ -167,16 +213,21 @@ class GcpStereoNode(Node):
         n = self.params.values['log_every_n_frames']
         if n and self.processed % n == 0:
             elapsed = time.monotonic() - w['start']
-            pairs_in = (self.input.received - w['received']) / 2 / elapsed
+            received = sum(self.input.received.values())
+            pairs_in = (received - w['received']) / 2 / elapsed
             stages = ', '.join(f'{k} {1000 * v / n:.0f}' for k, v in w['seconds'].items())
             sync = self.input.sync
             self.get_logger().info(
                 f'{self.processed} pairs processed; last {n}: ms per stage {stages}; '
-                f'input {pairs_in:.1f} pairs/s; dropped stale {self._worker.stale}, '
+                f'input taken {pairs_in:.1f} pairs/s; dropped stale {self.stale}, '
                 f'unmatched left {sync.dropped_left} right {sync.dropped_right}, '
                 f'errors {self.errors}')
-            self._window = {'start': time.monotonic(), 'received': self.input.received,
-                            'seconds': {}}
+            self._window = {'start': time.monotonic(), 'received': received, 'seconds': {}}
+
+    def _on_worker_error(self, err):
+        where = traceback.extract_tb(err.__traceback__)[-1]
+        self._log('error', f'unexpected {type(err).__name__} in the worker thread, which goes '
+                           f'on: {err} (at {where.filename}:{where.lineno})')
 
     def destroy_node(self):
         self._cancel.set()

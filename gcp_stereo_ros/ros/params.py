@@ -1,8 +1,13 @@
 """
 The node's parameters, ROS-free: names, descriptions, ranges and their StereoConfig fields.
 
-The node declares them; `gcp-stereo-bag run --params` reads the same YAML file, so a bag is
-processed exactly as the live node would.
+The node declares them; `gcp-stereo-bag run --params` reads the same YAML file (a shipped
+config, or what `ros2 param dump` wrote), so a bag is processed exactly as the live node would.
+
+Each matching cost has its own window, theta, P1, P2, c_hi and c_low (`census.P2`, ...):
+switching `cost` changes no other parameter, so parameters can be set in any order (as
+`ros2 param load` does, alphabetically) and `ros2 param dump` then `load` restores exactly
+what was dumped.
 """
 from dataclasses import dataclass
 import difflib
@@ -12,9 +17,12 @@ import numpy as np
 import yaml
 
 from .sync import PairSync
+from ..stereo.cost import COSTS
 from ..stereo.pipeline import COST_DEFAULTS, MIB, StereoConfig
 
 NODE_NAME = 'gcp_stereo_node'
+# Parameters every rclpy node declares (a dump holds them); the bag tools leave them out.
+RCLPY_PARAMS = ('use_sim_time', 'start_type_description_service')
 
 
 @dataclass(frozen=True)
@@ -22,96 +30,190 @@ class Param:
     name: str
     default: object
     description: str
-    field: str | None = None  # StereoConfig field; None = node-only (sync, logging)
+    field: str | None = None  # StereoConfig field; None = node-only (input, sync, outputs)
     # (low, high, step) for numbers; step 0 = continuous
     range: tuple | None = None  # noqa: A003 (read elsewhere as p.range, so keep the name)
+    choices: tuple | None = None  # the only values allowed (said in the descriptor)
+    cost: str | None = None  # the matching cost this value belongs to (None = any)
     dynamic: bool = False  # takes values of more than one type (bf16: true, false or 'auto')
+
+
+def _cost_params(cost):
+    d = COST_DEFAULTS[cost]
+    top = 11 if cost == 'census' else 31  # census bits fit two uint64 words
+    return (
+        Param(f'{cost}.window', _D.window, f'{cost}: matching window size in pixels (odd)',
+              'window', (3, top, 2), cost=cost),
+        Param(f'{cost}.theta', d['theta'], f'{cost}: GCP threshold on the calibrated CNN '
+              "confidence: the probability that the pixel's CNN disparity is within 1 px of "
+              'the truth', 'theta', (0.0, 1.0, 0.0), cost=cost),
+        Param(f'{cost}.P1', d['p1'], f'{cost}: SGM penalty for a 1 px disparity change',
+              'p1', (0.0, 10000.0, 0.0), cost=cost),
+        Param(f'{cost}.P2', d['p2'], f'{cost}: SGM penalty for larger disparity jumps (>= P1)',
+              'p2', (0.0, 10000.0, 0.0), cost=cost),
+        Param(f'{cost}.c_hi', d['c_hi'], f'{cost}: cost given to every disparity of a non-GCP '
+              'pixel', 'c_hi', (0.0, 10000.0, 0.0), cost=cost),
+        Param(f'{cost}.c_low', d['c_low'], f'{cost}: cost given to a GCP at its CNN disparity '
+              '(<= c_hi)', 'c_low', (0.0, 10000.0, 0.0), cost=cost),
+    )
 
 
 _D = StereoConfig()
 PARAMS = (
     Param('cost', _D.cost,
-          "matching cost: 'census' or 'sad' (a switch loads that cost's defaults for theta, "
-          'P1, P2, c_hi, c_low unless set in the same atomic request)', 'cost'),
-    Param('window', _D.window, 'matching window size in pixels (odd; census at most 11)',
-          'window', (3, 31, 2)),
+          "matching cost: 'census' or 'sad'; each has its own window, theta, P1, P2, c_hi, "
+          'c_low (census.*, sad.*), which a switch leaves as they are', 'cost', choices=COSTS),
     Param('max_disparity', _D.max_disp, 'number of disparities searched: 0 .. max_disparity - 1',
           'max_disp', (1, 1024, 1)),
-    Param('P1', _D.p1, 'SGM penalty for a 1 px disparity change', 'p1', (0.0, 10000.0, 0.0)),
-    Param('P2', _D.p2, 'SGM penalty for larger disparity jumps (>= P1)',
-          'p2', (0.0, 10000.0, 0.0)),
-    Param('paths', _D.paths, 'SGM path directions: 4, 8 or 16', 'paths', (4, 16, 4)),
+    *_cost_params('census'),
+    *_cost_params('sad'),
+    Param('paths', _D.paths, 'SGM path directions: 4, 8 or 16', 'paths', choices=(4, 8, 16)),
     Param('use_gcp', _D.use_gcp, 'refine the cost volume with CNN ground control points',
           'use_gcp'),
-    Param('theta', _D.theta,
-          'GCP threshold on the calibrated CNN confidence: the probability that the '
-          "pixel's CNN disparity is within 1 px of the truth",
-          'theta', (0.0, 1.0, 0.0)),
-    Param('c_hi', _D.c_hi, 'cost given to every disparity of a non-GCP pixel',
-          'c_hi', (0.0, 10000.0, 0.0)),
-    Param('c_low', _D.c_low, 'cost given to a GCP at its CNN disparity (<= c_hi)',
-          'c_low', (0.0, 10000.0, 0.0)),
     Param('gcp_lr_check', _D.gcp_lr_check,
           "GCPs only where the right view's CNN disparity agrees within 1 px", 'gcp_lr_check'),
     Param('weights', _D.weights,
           "CNN weights file ('' = the weights shipped with the package)", 'weights'),
-    Param('device', _D.device, "torch device of the CNN: 'cpu', 'cuda' or 'cuda:N'", 'device'),
+    Param('device', _D.device,
+          "'cpu', or 'cuda' / 'cuda:N' to run the whole pipeline on that GPU", 'device'),
     Param('bf16', _D.bf16, "bfloat16 CNN descriptors: true, false or 'auto' (on where native: "
           'CPUs with avx512_bf16 or AMX, CUDA)', 'bf16', dynamic=True),
     Param('subpixel', _D.subpixel, 'parabola fit for sub-pixel disparities', 'subpixel'),
     Param('lr_check', _D.lr_check,
-          'left-right consistency check (invalid pixels published as -1)', 'lr_check'),
+          'left-right consistency check (invalid pixels published as min_disparity - 1)',
+          'lr_check'),
     Param('median', _D.median, '3x3 median filter on the disparity', 'median'),
+    Param('downsample', _D.downsample,
+          'match at 1/N resolution (1, 2 or 4): both images area-binned, max_disparity / N; '
+          'outputs at full size, disparities in full-size pixels', 'downsample',
+          choices=(1, 2, 4)),
     Param('memory_limit_mb', _D.memory_limit_mb,
           'memory budget in MiB of processing one pair: a pair that would need more is '
-          'refused, saying what to lower',
-          'memory_limit_mb', (64, 1 << 20, 1)),
+          'refused, saying what to lower', 'memory_limit_mb', (64, 1 << 20, 1)),
+    Param('image_transport', 'raw',
+          "input images: 'raw' (sensor_msgs/Image) or 'compressed' (sensor_msgs/"
+          'CompressedImage, jpeg or png, on <image topic>/compressed)',
+          choices=('raw', 'compressed')),
+    Param('rectify', False,
+          'subscribe left/image_raw, right/image_raw and rectify them with the camera_info '
+          'K, D, R, P (false: left/image_rect, right/image_rect are rectified already)'),
     Param('approximate_sync', False,
           'pair left/right images whose stamps differ by at most the tolerance'),
     Param('approximate_sync_tolerance_seconds', 0.0,
           'largest stamp difference of an approximate pair', range=(0.0, 10.0, 0.0)),
     Param('queue_size', 5, 'images kept per side while waiting for the twin (at most '
           'memory_limit_mb / 4 of them in bytes)', range=(1, 1000, 1)),
+    Param('use_color', True, "points2 carries the left image's colour in an rgb field"),
+    Param('avoid_point_cloud_padding', False,
+          'points2 without alignment padding: 16 bytes a point with rgb, 12 without '
+          '(padded: 32 and 16)'),
     Param('log_every_n_frames', 30,
           'log stage timings, input rate and drops every N frames (0 = never)',
           range=(0, 100000, 1)),
 )
 BY_NAME = {p.name: p for p in PARAMS}
-COST_PARAMS = {'theta': 'theta', 'P1': 'p1', 'P2': 'p2', 'c_hi': 'c_hi', 'c_low': 'c_low'}
+ORDERED = (('P1', 'P2'), ('c_low', 'c_hi'))  # (low, high): low <= high within each cost
 SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds',
                'memory_limit_mb')
 QUEUE_SHARE = 4  # each sync queue holds at most memory_limit_mb / QUEUE_SHARE
+INPUT_PARAMS = ('image_transport', 'rectify')
 
 
-def cost_defaults(cost):
-    """ROS-named defaults that follow the matching cost."""
-    if cost not in COST_DEFAULTS:
-        raise ValueError(f"cost must be 'census' or 'sad', got {cost!r}")
-    return {name: COST_DEFAULTS[cost][field] for name, field in COST_PARAMS.items()}
+def check_names(names, where=''):
+    """Raise ValueError naming the parameters in `names` the node does not have."""
+    unknown = sorted(set(names) - set(BY_NAME))
+    if unknown:
+        per_cost = sorted({n for n in unknown if f'census.{n}' in BY_NAME})
+        hint = (f' ({", ".join(per_cost)}: each cost has its own, e.g. census.{per_cost[0]}, '
+                f'sad.{per_cost[0]})' if per_cost else '')
+        raise ValueError(f'{where}unknown parameter(s) {unknown}{hint}{_guesses(unknown)}; '
+                         f'known: {sorted(BY_NAME)}')
+
+
+def _guesses(names):
+    """Return ' (did you mean ...?)' with the known names close to unknown `names`, or ''."""
+    short = {n.split('.', 1)[1]: n for n in BY_NAME if n.startswith('census.')}
+    guesses = {}
+    for name in names:
+        close = difflib.get_close_matches(name, [*BY_NAME, *short], n=1)
+        if close and close[0] != name:
+            guesses[name] = short.get(close[0], close[0])
+    if not guesses:
+        return ''
+    if len(names) == 1:
+        return f' (did you mean {guesses[names[0]]!r}?)'
+    return ' (did you mean ' + ', '.join(f'{g!r} for {n!r}' for n, g in guesses.items()) + '?)'
+
+
+def coerce(name, value):
+    """
+    Return `value` as parameter `name` takes it: a whole number for a decimal one as float.
+
+    YAML `P1: 4`, `-p census.P1:=300` and `ros2 param set ... census.P1 300` give integers.
+    Raises ValueError for a value of the wrong type or not among the parameter's choices.
+    """
+    p = BY_NAME[name]
+    if isinstance(p.default, float) and type(value) is int:
+        value = float(value)
+    if type(value) is not type(p.default) and not p.dynamic:
+        raise ValueError(f'{name} takes a {type(p.default).__name__} value, got {value!r}')
+    if p.choices and value not in p.choices:
+        raise ValueError(f'{name} must be one of {", ".join(map(repr, p.choices))}, '
+                         f'got {value!r}')
+    return value
 
 
 def config_from_params(values):
     """
-    Build the StereoConfig from ROS-named parameter values.
+    Build the StereoConfig of the chosen `cost` from ROS-named parameter values.
 
-    Cost-dependent ones that are missing take the chosen cost's defaults. Raises ValueError
-    for unknown names or invalid values.
+    Missing values take their defaults. Both costs' values are checked, so that switching
+    `cost` can never fail. Raises ValueError for unknown names or invalid values.
     """
-    unknown = set(values) - set(BY_NAME)
-    if unknown:
-        raise ValueError(f'unknown parameter(s) {describe_unknown(unknown, BY_NAME)}; '
-                         f'known: {", ".join(sorted(BY_NAME))}')
-    fields = {BY_NAME[n].field: v for n, v in values.items() if BY_NAME[n].field and n != 'cost'}
-    return StereoConfig.for_cost(values.get('cost', _D.cost), **fields)
+    check_names(values)
+    values = {n: coerce(n, v) for n, v in values.items()}
+    configs = {}
+    for cost in COSTS:
+        fields = {BY_NAME[n].field: v for n, v in values.items()
+                  if BY_NAME[n].field and n != 'cost' and BY_NAME[n].cost in (None, cost)}
+        try:
+            configs[cost] = StereoConfig.for_cost(cost, **fields)
+        except ValueError as err:
+            raise ValueError(f'{cost}: {err}') from None
+    return configs[values.get('cost', _D.cost)]
 
 
-def describe_unknown(names, known):
-    """Return unknown parameter names as text, each with the closest known name if any."""
-    parts = []
-    for name in sorted(names):
-        close = difflib.get_close_matches(name, known, n=1)
-        parts.append(repr(name) + (f' (did you mean {close[0]!r}?)' if close else ''))
-    return ', '.join(parts)
+def _crossed(values):
+    """Yield (cost, low name, high name, low value, high value) of each pair that crosses."""
+    for cost in COSTS:
+        for low, high in ORDERED:
+            a, b = (values.get(f'{cost}.{n}', BY_NAME[f'{cost}.{n}'].default) for n in (low, high))
+            if a > b:
+                yield cost, low, high, a, b
+
+
+def inconsistencies(values):
+    """
+    Return the reasons why `values` break P1 <= P2 or c_low <= c_hi within a cost.
+
+    The node takes such values one at a time (`ros2 param load` sets P1 before P2), so a
+    pair may cross for a while; an empty list when none does.
+    """
+    return [f'{cost}: {high} ({b}) must be >= {low} ({a})'
+            for cost, low, high, a, b in _crossed(values)]
+
+
+def uncrossed(values):
+    """Return `values` with each crossed pair's high value raised to the low one."""
+    return {**values, **{f'{cost}.{high}': a for cost, _, high, a, _ in _crossed(values)}}
+
+
+def make_sync(values):
+    """Build the PairSync that ROS-named parameter values ask for (defaults for missing ones)."""
+    queue_size, approximate, tolerance, memory_limit_mb = (
+        values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS)
+    return PairSync(queue_size, approximate, tolerance,
+                    memory_limit_mb * MIB // QUEUE_SHARE)
 
 
 def config_warnings(pipeline):
@@ -126,14 +228,6 @@ def config_warnings(pipeline):
                     'disparity and the disparity is 0 everywhere; lower theta or set use_gcp '
                     'false']
     return []
-
-
-def make_sync(values):
-    """Build the PairSync that ROS-named parameter values ask for (defaults for missing ones)."""
-    queue_size, approximate, tolerance, memory_limit_mb = (
-        values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS)
-    return PairSync(queue_size, approximate, tolerance,
-                    memory_limit_mb * MIB // QUEUE_SHARE)
 
 
 def read_yaml(path):
@@ -152,20 +246,52 @@ def check_params_files(argv):
             read_yaml(path)
 
 
+def _flatten(params, prefix=''):
+    """Flatten nested parameter dicts into dotted names, as rclpy reads a params file."""
+    flat = {}
+    for key, value in params.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f'{prefix}{key}.'))
+        else:
+            flat[f'{prefix}{key}'] = value
+    return flat
+
+
 def load_params_file(path):
     """
-    Return the parameter values from a ROS params YAML.
+    Return the parameter values a ROS params YAML gives the node.
 
-    The file has the form `<node or /**>: ros__parameters: {...}`; `qos_overrides`, which
-    only rclpy reads, is left out.
+    The entries are those keyed `/**` (or any wildcard) and those for the node in any
+    namespace (`gcp_stereo_node`, `/ns/gcp_stereo_node`, `/**/gcp_stereo_node`), wildcards
+    first, merged in that order as rcl does; a file with a single entry (what `ros2 param
+    dump` writes, for any node name) is taken whatever its key. Nested names are flattened
+    (`census: {P1: 4}` -> `census.P1`); rclpy's own parameters (`use_sim_time`,
+    `start_type_description_service`, `qos_overrides`) are left out, and whole numbers for
+    decimal parameters become floats. Raises ValueError for an unreadable file, no entry for
+    the node, unknown parameters or values of the wrong type.
     """
+    path = Path(path)
     doc = read_yaml(path)
-    for key in (NODE_NAME, '/' + NODE_NAME, '/**'):
-        if (isinstance(doc, dict) and isinstance(doc.get(key), dict)
-                and 'ros__parameters' in doc[key]):
-            if not isinstance(doc[key]['ros__parameters'], dict):
-                raise ValueError(f'{path}: {key}: ros__parameters must map names to values')
-            values = dict(doc[key]['ros__parameters'])
-            values.pop('qos_overrides', None)  # rclpy's QoS settings, not pipeline parameters
-            return values
-    raise ValueError(f'{path}: expected "{NODE_NAME}:" or "/**:" with "ros__parameters:" inside')
+    entries = {key: body['ros__parameters'] for key, body in (doc or {}).items()
+               if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict)
+               } if isinstance(doc, dict) else {}
+    last = {key: str(key).rstrip('/').rsplit('/', 1)[-1] for key in entries}
+    wild = [key for key in entries if last[key] in ('*', '**')]
+    named = [key for key in entries if last[key] == NODE_NAME]
+    keys = wild + named
+    if not keys and len(entries) == 1:
+        keys = list(entries)
+    if not keys:
+        found = ', '.join(map(str, entries)) or 'none'
+        raise ValueError(f'{path}: no parameters for {NODE_NAME} (expected "/**:" or '
+                         f'"{NODE_NAME}:" with "ros__parameters:" inside; entries: {found})')
+    values = {}
+    for key in keys:
+        values.update(_flatten(entries[key]))
+    values = {n: v for n, v in values.items()
+              if n not in RCLPY_PARAMS and not n.startswith('qos_overrides.')}
+    check_names(values, f'{path}: ')
+    try:
+        return {n: coerce(n, v) for n, v in values.items()}
+    except ValueError as err:
+        raise ValueError(f'{path}: {err}') from None

@@ -1,9 +1,11 @@
 """
-sensor_msgs/Image <-> numpy without cv_bridge or rclpy.
+sensor_msgs/Image and CompressedImage <-> numpy without cv_bridge, image_transport or rclpy.
 
 Works on any object with the Image fields (height, width, encoding, is_bigendian, step,
-data): rclpy messages (data is array.array('B')) as well as rosbags ones (numpy uint8).
+data) or the CompressedImage ones (format, data): rclpy messages (data is array.array('B'))
+as well as rosbags ones (numpy uint8).
 """
+import cv2
 import numpy as np
 
 # encoding: (little-endian dtype of one channel, channels)
@@ -96,3 +98,64 @@ def array_to_image_fields(array, encoding):
         'step': width * channels * dtype.itemsize,
         'data': np.array(a, dtype=dtype, order='C').reshape(-1).view(np.uint8),
     }
+
+
+def message_to_array(msg, topic='image'):
+    """Return the image of a sensor_msgs/Image or CompressedImage as a new numpy array."""
+    if hasattr(msg, 'format'):
+        return compressed_to_array(msg, topic)
+    return image_to_array(msg, topic)
+
+
+def compressed_to_array(msg, topic='image/compressed'):
+    """
+    Return the image of a sensor_msgs/CompressedImage (jpeg or png) as a new numpy array.
+
+    As image_transport's compressed subscriber reads it: `format` is '<encoding>; <jpeg|png>
+    compressed <bgr8|mono8|...>' (or just 'jpeg' from old publishers, colour then in BGR
+    order). Gives what `image_to_array` gives for the original encoding: (H, W) uint8 or
+    uint16 gray, or (H, W, 3) uint8 RGB. Raises ValueError naming `topic` for data that does
+    not decode, or a format this node does not read (compressedDepth, colour beyond 8 bits).
+    """
+    fmt = msg.format
+    if 'compressedDepth' in fmt:
+        raise ValueError(f'{topic}: format {fmt!r}: compressedDepth images are not supported')
+    data = msg.data
+    raw = (np.asarray(data, np.uint8) if isinstance(data, (list, tuple))
+           else np.frombuffer(data, np.uint8))
+    image = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED) if raw.size else None
+    if image is None:
+        raise ValueError(f'{topic}: {raw.size} bytes of format {fmt!r} do not decode as an '
+                         'image (jpeg or png expected)')
+    if image.ndim == 2:
+        return image
+    if image.dtype != np.uint8:
+        raise ValueError(f'{topic}: format {fmt!r}: {image.dtype} colour images are not '
+                         'supported; expected 8-bit colour or gray')
+    compressed = fmt.partition(';')[2]
+    bgr = 'compressed bgr' in compressed if compressed else True  # old publishers: BGR
+    return np.ascontiguousarray(image[:, :, 2::-1] if bgr else image[:, :, :3])
+
+
+def array_to_compressed_fields(array, fmt):
+    """
+    Return the CompressedImage fields (all but header) for `array`, as image_transport writes.
+
+    `array` is uint8 (H, W) gray or (H, W, 3) RGB; `fmt` is 'png' (lossless) or 'jpeg'
+    (quality 95). `format` follows compressed_image_transport, e.g. 'rgb8; png compressed
+    bgr8'; `data` is a 1-D numpy uint8 array.
+    """
+    if fmt not in ('png', 'jpeg'):
+        raise ValueError(f"compressed format must be 'png' or 'jpeg', got {fmt!r}")
+    a = np.asarray(array)
+    if a.dtype != np.uint8 or not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 3)):
+        raise ValueError(f'compressing needs a uint8 (H, W) or (H, W, 3) array, '
+                         f'got {a.dtype} {a.shape}')
+    color = a.ndim == 3
+    ok, data = cv2.imencode('.png' if fmt == 'png' else '.jpg', a[:, :, ::-1] if color else a,
+                            [] if fmt == 'png' else [cv2.IMWRITE_JPEG_QUALITY, 95])
+    if not ok:
+        raise ValueError(f'OpenCV could not encode a {a.shape} image as {fmt}')
+    encoding = 'rgb8' if color else 'mono8'
+    target = 'bgr8' if color else ('mono8' if fmt == 'jpeg' else '')
+    return {'format': f'{encoding}; {fmt} compressed {target}', 'data': data.reshape(-1)}

@@ -1,8 +1,19 @@
-"""The node's input: left and right image and camera_info subscriptions, paired by stamp."""
+"""
+The node's input: left and right image and camera_info subscriptions, paired by stamp.
+
+While the worker is busy the executor does not take images at all: the middleware keeps
+the newest one per side (history depth 1) and drops older ones, so input the node cannot
+use costs it nothing but the middleware's own receiving. When the worker is idle again it
+wakes the executor, which takes the newest images and pairs them.
+"""
+import os
+import time
+
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from .graph import shm_segment_bytes
 from .messages import stamp_ns
@@ -13,33 +24,73 @@ STREAK_WARN = 10  # one side arriving this often in a row without its twin -> wa
 SHM_ADVICE = ('raise segment_size in the Fast DDS profile of every process of the graph '
               '(FASTRTPS_DEFAULT_PROFILES_FILE; config/fastdds.xml has 32 MiB, '
               'the default is 0.5 MiB)')
+# The sensor-data QoS (best effort, volatile), keeping only the newest image per side.
+IMAGE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE)
+
+
+def image_topic(side, values):
+    """Return the image topic of `side` the parameters ask for (relative to the node)."""
+    base = f'{side}/image_raw' if values['rectify'] else f'{side}/image_rect'
+    return base + '/compressed' if values['image_transport'] == 'compressed' else base
+
+
+class _WhileIdle(MutuallyExclusiveCallbackGroup):
+    """Callbacks run one at a time, and only while `idle()`: else their messages wait."""
+
+    def __init__(self, idle):
+        super().__init__()
+        self._idle = idle
+
+    def can_execute(self, entity):
+        return self._idle() and super().can_execute(entity)
+
+    def beginning_execution(self, entity):
+        return self._idle() and super().beginning_execution(entity)
 
 
 class StereoInput:
     """
-    Subscribe `<side>/image_rect` and `<side>/camera_info` and pair images by stamp.
+    Subscribe the images and `<side>/camera_info` and pair the images by stamp.
 
-    Each pair goes to `on_pair(stamp_ns, left_msg, right_msg)`; the newest camera_info of
-    each side is kept in `info`. Counts images in `received`. Warnings (a side without its
-    twin, images lost in transport or announced larger than the shared-memory segment) go to
-    `log(severity, text)`, which rate-limits them.
+    Image topics follow the parameters (see `image_topic`). Each pair goes to
+    `on_pair(stamp_ns, left_msg, right_msg)`; images are taken only while `idle()`, and
+    `wake()` has the executor look again. The newest camera_info of each side is kept in
+    `info`; `received` and `last_stamp` count and date the images taken, per side, and
+    `paired_at` is the time.monotonic() of the last pair. Images lost in transport or
+    announced (by camera_info) larger than the shared-memory segment are warned about
+    through `log(severity, text)`, which rate-limits.
     """
 
-    def __init__(self, node, values, on_pair, log):
+    def __init__(self, node, values, on_pair, idle, log):
+        self._node = node
         self._on_pair = on_pair
         self._log = log
-        self.sync = make_sync(values)
-        self.received = 0
-        qos = {'qos_overriding_options': QoSOverridingOptions.with_default_policies()}
-        self.subs = {side: node.create_subscription(
-            Image, f'{side}/image_rect', lambda m, s=side: self._on_image(s, m),
-            qos_profile_sensor_data, event_callbacks=SubscriptionEventCallbacks(
-                message_lost=lambda _, s=side: self._on_lost(s)), **qos) for side in SIDES}
+        self._segment = shm_segment_bytes()
+        self._group = _WhileIdle(idle)
+        self._qos = {'qos_overriding_options': QoSOverridingOptions.with_default_policies()}
+        self._wake = node.create_guard_condition(lambda: None)
+        self.received = dict.fromkeys(SIDES, 0)
+        self.last_stamp = dict.fromkeys(SIDES)
+        self.paired_at = None
         self.info = dict.fromkeys(SIDES)
         self._info_subs = [node.create_subscription(
             CameraInfo, f'{side}/camera_info', lambda m, s=side: self._on_info(s, m),
-            qos_profile_sensor_data, **qos) for side in SIDES]
-        self._segment = shm_segment_bytes()
+            qos_profile_sensor_data, **self._qos) for side in SIDES]
+        self.subs = {}
+        self.subscribe(values)
+
+    def subscribe(self, values):
+        """(Re)subscribe the image topics the parameters ask for; start pairing afresh."""
+        for sub in self.subs.values():
+            self._node.destroy_subscription(sub)
+        kind = CompressedImage if values['image_transport'] == 'compressed' else Image
+        self.subs = {side: self._node.create_subscription(
+            kind, image_topic(side, values), lambda m, s=side: self._on_image(s, m),
+            IMAGE_QOS, callback_group=self._group, event_callbacks=SubscriptionEventCallbacks(
+                message_lost=lambda _, s=side: self._on_lost(s)), **self._qos)
+            for side in SIDES}
+        self.reset_sync(values)
 
     def topics(self):
         """Return the resolved image topic names, by side."""
@@ -49,18 +100,27 @@ class StereoInput:
         """Start pairing afresh with the sync parameters in `values`."""
         self.sync = make_sync(values)
 
+    def wake(self):
+        """Have the executor look at the image subscriptions again (any thread)."""
+        self._wake.trigger()
+
     def _on_image(self, side, msg):
-        self.received += 1
-        pair = self.sync.add(side, stamp_ns(msg.header), msg, len(msg.data))
+        self.received[side] += 1
+        stamp = self.last_stamp[side] = stamp_ns(msg.header)
+        pair = self.sync.add(side, stamp, msg, len(msg.data))
         if self.sync.unmatched_streak(side) == STREAK_WARN:
             topics = self.topics()
-            self._log('warn',
-                      f'{topics[side]}: {STREAK_WARN} images in a row without a matching '
-                      f'{topics[other_side(side)]} image. Check the stamps and the sync '
-                      "parameters; with large best-effort images, Fast DDS's default 512 KB "
-                      'shared-memory segment drops them: set FASTRTPS_DEFAULT_PROFILES_FILE '
-                      "to this package's config/fastdds.xml.")
+            hint = ('' if os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE') else
+                    "; with large best-effort images, Fast DDS's default 512 KB shared-memory "
+                    'segment drops them: set FASTRTPS_DEFAULT_PROFILES_FILE to this '
+                    "package's config/fastdds.xml")
+            self._node.get_logger().warn(
+                f'{topics[side]}: {STREAK_WARN} images in a row without a matching '
+                f'{topics[other_side(side)]} image (newest stamps: {side} {stamp} ns, '
+                f'{other_side(side)} {self.last_stamp[other_side(side)]} ns). Check the stamps '
+                f'and the sync parameters{hint}.')
         if pair is not None:
+            self.paired_at = time.monotonic()
             self._on_pair(*pair)
 
     def _on_info(self, side, msg):

@@ -9,7 +9,6 @@ import bisect
 import math
 
 SIDES = ('left', 'right')
-RESTART_NS = 1_000_000_000  # a stamp this far before the last pair starts a new stream
 
 
 class PairSync:
@@ -22,10 +21,12 @@ class PairSync:
     most `max_bytes` of them (None = no byte bound; `add` is told each message's size); the
     oldest stamp goes first.
     Emitting a pair discards, per side, every queued message stamped at or before the
-    paired one, and later arrivals stamped at or before it are discarded on arrival: a
-    newer pair won, so they can never be used. A stamp more than RESTART_NS before the last
-    pair means the stream restarted (a looped bag, a camera reset): the queues are cleared
-    and pairing starts afresh. `tolerance` is ignored when exact.
+    paired one: a newer pair won, so they can never be used. A later arrival stamped at or
+    before the last pair is held aside (the newest one per side): from one side alone it is
+    a straggler, discarded at the next pair; once both sides have sent one, the stream went
+    back in time (a looped bag replaying its stamps, even a one-frame bag repeating one
+    stamp; a camera reset): the queues are cleared and pairing starts afresh with the two
+    held messages. `tolerance` is ignored when exact.
 
     Counters: `pairs`, `dropped_left`, `dropped_right` (messages discarded unpaired).
     """
@@ -48,6 +49,7 @@ class PairSync:
         self._msgs = {side: [] for side in SIDES}
         self._sizes = {side: [] for side in SIDES}  # bytes of each queued message
         self._last = {side: None for side in SIDES}  # stamps of the last emitted pair
+        self._back = {side: None for side in SIDES}  # (stamp, msg, size) at or before _last
         self._streak = {side: 0 for side in SIDES}
 
     def add(self, side, stamp_ns, msg, size=0):
@@ -57,13 +59,22 @@ class PairSync:
         Return None while it waits for its twin.
         """
         other = other_side(side)
-        if self._last[side] is not None and stamp_ns < self._last[side] - RESTART_NS:
-            for s in SIDES:
-                self._discard_upto(s, math.inf)
-                self._last[s] = None
-        if self._last[side] is not None and stamp_ns <= self._last[side]:
+        if self._last[side] is None or stamp_ns > self._last[side]:
+            return self._add(side, other, stamp_ns, msg, size)
+        if self._back[side] is not None:
             self._drop(side, 1)
+        self._back[side] = stamp_ns, msg, size
+        if self._back[other] is None:
             return None
+        back = self._back  # both sides went back: a new stream
+        self._back = {s: None for s in SIDES}
+        self._last = {s: None for s in SIDES}
+        for s in SIDES:
+            self._discard_upto(s, math.inf)
+        self._add(other, side, *back[other])
+        return self._add(side, other, *back[side])
+
+    def _add(self, side, other, stamp_ns, msg, size):
         stamps = self._stamps[other]
         lo = bisect.bisect_left(stamps, stamp_ns - self.tolerance_ns)
         hi = bisect.bisect_right(stamps, stamp_ns + self.tolerance_ns)
@@ -82,6 +93,10 @@ class PairSync:
         del self._sizes[other][j]
         self._discard_upto(side, stamp_ns)
         self._discard_upto(other, match_stamp)
+        for s in SIDES:  # stragglers
+            if self._back[s] is not None:
+                self._back[s] = None
+                self._drop(s, 1)
         self._last[side], self._last[other] = stamp_ns, match_stamp
         self._streak = {s: 0 for s in SIDES}
         self.pairs += 1

@@ -7,23 +7,32 @@ class NewestWorker:
     Run `process(*item)` in a thread for the newest item `put` since it last looked.
 
     An item still waiting when a newer one arrives is dropped and counted in `stale`, so
-    the caller never falls behind and memory holds at most one waiting item. The thread
-    outlives any exception of `process`: it goes to `on_error(err)` and the next item is
-    taken. `on_idle()` runs in the thread once no item has come for `idle_seconds` since the
-    last one (the node lets go of its arrays then).
+    the caller never falls behind and memory holds at most one waiting item. `on_idle()`
+    is called from the thread each time it has nothing left to do, and `on_quiet()` once no
+    item has come for `quiet_seconds` since the last one (the node lets go of its arrays
+    then). The thread outlives any exception of these: it goes to `on_error(err)`.
     """
 
-    def __init__(self, process, name, on_error, on_idle=None, idle_seconds=2.0):
+    def __init__(self, process, name, on_error, on_idle=lambda: None, on_quiet=None,
+                 quiet_seconds=2.0):
         self._process = process
         self._on_error = on_error
         self._on_idle = on_idle
-        self._idle_seconds = idle_seconds
+        self._on_quiet = on_quiet
+        self._quiet_seconds = quiet_seconds
         self.stale = 0
         self._pending = None
+        self._working = False
         self._stopping = False
         self._cv = threading.Condition()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
+
+    @property
+    def idle(self):
+        """Return True while no item is waiting or being processed."""
+        with self._cv:
+            return self._pending is None and not self._working
 
     def put(self, item):
         """Hand over `item`, replacing (and counting) one still waiting."""
@@ -46,20 +55,27 @@ class NewestWorker:
         return not self._thread.is_alive()
 
     def _run(self):
-        idle_due = False  # an item was processed and on_idle has not run since
+        quiet_due = False  # an item was processed and on_quiet has not run since
         while True:
             with self._cv:
                 ready = self._cv.wait_for(lambda: self._pending is not None or self._stopping,
-                                          self._idle_seconds if idle_due else None)
+                                          self._quiet_seconds if quiet_due else None)
                 if self._stopping:
                     return
-                item, self._pending = self._pending, None
-            if ready:
-                self._call(self._process, *item)
-                idle_due = self._on_idle is not None
-            else:
-                idle_due = False
+                if ready:
+                    item, self._pending = self._pending, None
+                    self._working = True
+            if not ready:
+                quiet_due = False
+                self._call(self._on_quiet)
+                continue
+            self._call(self._process, *item)
+            with self._cv:
+                self._working = False
+                idle = self._pending is None and not self._stopping
+            if idle:
                 self._call(self._on_idle)
+            quiet_due = self._on_quiet is not None
 
     def _call(self, fn, *args):
         try:

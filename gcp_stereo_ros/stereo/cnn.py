@@ -19,6 +19,8 @@ needs only row y of both descriptor images, so both steps run on strips of STRIP
 the activations of a strip stay in the CPU caches (measured on a 2-core Zen 4 for a KITTI
 pair: bf16 convolutions 0.79 s for the whole images, 0.54 s in strips of 64 rows) and the
 descriptors of the whole images are never held (2 x 119 MB for a KITTI pair in float32).
+On a GPU (`device_confidence`) the same strips are correlated in torch on the device, as
+batched matrix products over blocks of columns (`_band_best`).
 
 Calibration: the raw cosine is high almost everywhere (most pixels score above 0.9), so a
 threshold on it says little. The weights file carries a monotone map, fitted on validation
@@ -45,6 +47,7 @@ FEATURES = 64
 PAD = PATCH // 2
 EPS = 1e-8
 STRIP_ROWS = 64
+BAND_BLOCK = 128  # columns per block of `_band_best`
 DEFAULT_WEIGHTS = Path(__file__).parents[1] / 'weights' / 'gcp_cnn.pt'
 
 
@@ -101,15 +104,6 @@ def load_net(path=None, device='cpu'):
     return net.to(device).eval()
 
 
-def check_device(device):
-    """Raise ValueError unless the torch device 'cuda' or 'cuda:N' exists here."""
-    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    index = int(device.partition(':')[2] or 0)
-    if index >= count:
-        have = 'no CUDA GPU' if count == 0 else f'{count} CUDA GPU(s)'
-        raise ValueError(f'device {device!r}: this machine has {have}; use cpu')
-
-
 def _calibration(stored, path):
     """
     Return the (cosine, probability) knots of a weights file's calibration, or None.
@@ -132,11 +126,21 @@ def _calibration(stored, path):
 
 
 def calibrated(net, cosine):
-    """Map raw cosines through the net's calibration (identity without one), as float32."""
+    """
+    Map raw cosines through the net's calibration (identity without one), as float32.
+
+    `cosine`: a numpy array, or a tensor (mapped on its device as np.interp does, in float64).
+    """
     knots = getattr(net, 'calibration', None)
     if knots is None:
         return cosine
-    return np.interp(cosine, *knots).astype(np.float32)
+    if not isinstance(cosine, torch.Tensor):
+        return np.interp(cosine, *knots).astype(np.float32)
+    xp, fp = (torch.as_tensor(k, dtype=torch.float64, device=cosine.device) for k in knots)
+    x = cosine.double()
+    j = (torch.searchsorted(xp, x, right=True) - 1).clamp_(0, len(xp) - 2)
+    y = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]) * (x - xp[j]) + fp[j]
+    return torch.where(x <= xp[0], fp[0], torch.where(x >= xp[-1], fp[-1], y)).float()
 
 
 @njit(inline='always', fastmath=True)
@@ -237,14 +241,97 @@ def bf16_native(device='cpu'):
 
 
 def network_input(*grays):
-    """
-    Return what the branch sees.
+    """Return what the branch sees of gray images, each standardized on its own."""
+    return padded_input(torch.from_numpy(np.stack([standardize(g) for g in grays])))
 
-    Each gray image standardized on its own, replicate-padded by PAD (so every pixel gets a
-    descriptor), as one float32 batch (N, 1, H + 2 PAD, W + 2 PAD).
+
+def padded_input(x):
     """
-    x = torch.from_numpy(np.stack([standardize(g) for g in grays])[:, None])
-    return F.pad(x, (PAD,) * 4, mode='replicate')
+    Return standardized images (N, H, W) as the branch takes them.
+
+    That is one float32 batch (N, 1, H + 2 PAD, W + 2 PAD), replicate-padded by PAD so that
+    every pixel gets a descriptor.
+    """
+    return F.pad(x[:, None], (PAD,) * 4, mode='replicate')
+
+
+def descriptors(net, x, bf16=False, cancel=None):
+    """
+    Return the raw branch output (N, H, W, 64) of a padded input, on the input's device.
+
+    The net runs in channels_last (1.6x faster on CPU than the default layout, and the
+    permute to (N, H, W, 64) is then free), with bfloat16 autocast if `bf16`. `cancel`: a
+    CancelFlag, checked before each layer (raises Cancelled).
+    """
+    net.to(memory_format=torch.channels_last)  # in place; a 1-channel input cannot select it
+    with torch.inference_mode(), torch.autocast(x.device.type, torch.bfloat16, enabled=bf16):
+        for layer in net.branch:  # = net.branch(x), stoppable between layers
+            if cancel is not None:
+                cancel.check()
+            x = layer(x)
+        return x.permute(0, 2, 3, 1)
+
+
+def _band_best(fa, fb, max_disp):
+    """
+    Return max_d and first argmax_d of <fa[:, x], fb[:, x - d]>, d < max_disp, as (R, W).
+
+    `fa`, `fb`: unit descriptors (R, W, C) on one device; cells with x - d < 0 count 0 and
+    dot products are capped at 1, as in `_best_match`. Each block of BAND_BLOCK columns of
+    `fa` is multiplied with the BAND_BLOCK + max_disp - 1 columns of `fb` it can see, all
+    blocks in one batched matrix product: (1 + BAND_BLOCK / max_disp) times the band's work.
+    """
+    r, w, c = fa.shape
+    nb = -(-w // BAND_BLOCK)
+    a = F.pad(fa, (0, 0, 0, nb * BAND_BLOCK - w)).view(r, nb, BAND_BLOCK, c)
+    seen = BAND_BLOCK + max_disp - 1
+    b = F.pad(fb, (0, 0, max_disp - 1, nb * BAND_BLOCK - w)).unfold(1, seen, BAND_BLOCK)
+    m = a @ b  # (r, nb, BAND_BLOCK, seen): column j holds fb at x - d for j = i + D - 1 - d
+    i = torch.arange(BAND_BLOCK, device=fa.device)
+    j = i[:, None] + (max_disp - 1) - torch.arange(max_disp, device=fa.device)
+    vol = m.gather(3, j.expand(r, nb, -1, -1)).view(r, nb * BAND_BLOCK, max_disp)[:, :w]
+    vol = vol.clamp_(max=1.0)
+    return vol.amax(2), vol.argmax(2)  # argmax: the first maximum
+
+
+def device_confidence(net, x, max_disp, bf16=False, seconds=None):
+    """
+    Return `confidence`'s (cof_c, cof_d, cof_dr) as tensors on the device of `x`.
+
+    `x`: the pair as `padded_input` makes it, on the net's device. Strip by strip, the
+    descriptors (`descriptors`, L2-normalized in float32) are correlated in torch there
+    (`_band_best`): the left view directly, the right view as the left view of the
+    mirrored pair. The result equals `confidence`'s within float rounding. `seconds`: as for
+    `confidence` (the device is synchronized at each stage's end).
+    """
+    h, w = x.shape[2] - 2 * PAD, x.shape[3] - 2 * PAD
+    check_max_disp(max_disp, w)
+    bf16 = bf16_native(x.device) if bf16 == 'auto' else bf16
+    cof_c = torch.empty((h, w), dtype=torch.float32, device=x.device)
+    cof_d = torch.empty((h, w), dtype=torch.int32, device=x.device)
+    cof_dr = torch.empty((h, w), dtype=torch.int32, device=x.device)
+    seconds = {} if seconds is None else seconds
+    for stage in ('cnn', 'confidence'):
+        seconds.setdefault(stage, 0.0)
+    with torch.inference_mode():
+        for y0 in range(0, h, STRIP_ROWS):
+            y1 = min(y0 + STRIP_ROWS, h)
+            t = time.perf_counter()
+            f = F.normalize(descriptors(net, x[:, :, y0:y1 + 2 * PAD], bf16).float(), dim=3,
+                            eps=EPS)
+            _synchronize(x.device)
+            t1 = time.perf_counter()
+            cof_c[y0:y1], cof_d[y0:y1] = _band_best(f[0], f[1], int(max_disp))
+            cof_dr[y0:y1] = _band_best(f[1].flip(1), f[0].flip(1), int(max_disp))[1].flip(1)
+            _synchronize(x.device)
+            seconds['cnn'] += t1 - t
+            seconds['confidence'] += time.perf_counter() - t1
+    return calibrated(net, cof_c), cof_d, cof_dr
+
+
+def _synchronize(device):
+    if device.type == 'cuda':
+        torch.cuda.synchronize(device)
 
 
 def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=False, seconds=None,
@@ -253,14 +340,14 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     Return the CNN matching confidence of a rectified pair for disparities 0..max_disp-1.
 
     `left`/`right`: anything `images.gray_pair` accepts; each is standardized on its own.
-    The convolutions run with torch on `device` ('cpu' or 'cuda'), both images as one batch
-    with the net in channels_last (1.6x faster on CPU than the default layout); `bf16` turns
-    on bfloat16 autocast (about 2x faster on CPUs with AVX512-BF16), 'auto' where
-    `bf16_native(device)`. The L2 normalization
-    (float32) and the correlation always run in a numba kernel on the CPU, strip by strip,
-    streaming over d without materializing the volume. `seconds`: a dict that gains the wall
-    time of the convolutions ('cnn') and of the correlation ('confidence'). `cancel`: a
-    CancelFlag, checked before each layer of each strip (raises Cancelled).
+    The convolutions run with torch on `device` ('cpu' or 'cuda[:N]'), both images as one
+    batch (see `descriptors`); `bf16` turns on bfloat16 autocast (about 2x faster on CPUs
+    with AVX512-BF16), 'auto' where `bf16_native(device)`. On the CPU the L2 normalization
+    (float32) and the correlation run in a numba kernel, strip by strip, streaming over d
+    without materializing the volume; on a GPU in torch there (`device_confidence`).
+    `seconds`: a dict that gains the wall time of the convolutions ('cnn') and of the
+    correlation ('confidence'). `cancel`: a CancelFlag, checked before each layer of each
+    strip on the CPU (raises Cancelled).
 
     Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1] mapped through the
     net's calibration (`calibrated`; the raw cosine without one), int32 (H, W)
@@ -275,8 +362,8 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     max_disp = int(max_disp)
     bf16 = bf16_native(device) if bf16 == 'auto' else bf16
     x = network_input(lg, rg).to(device)
-    # In place; the 1-channel input alone cannot select it.
-    net.to(memory_format=torch.channels_last)
+    if x.device.type != 'cpu' and not volume:
+        return tuple(a.cpu().numpy() for a in device_confidence(net, x, max_disp, bf16, seconds))
     cof_c = np.empty((h, w), np.float32)
     cof_d = np.empty((h, w), np.int32)
     cof_dr = np.empty((h, w), np.int32)
@@ -287,15 +374,7 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     for y0 in range(0, h, STRIP_ROWS):
         y1 = min(y0 + STRIP_ROWS, h)
         t = time.perf_counter()
-        with torch.inference_mode(), torch.autocast(torch.device(device).type, torch.bfloat16,
-                                                    enabled=bf16):
-            f = x[:, :, y0:y1 + 2 * PAD]
-            for layer in net.branch:  # = net.branch(f), stoppable between layers
-                if cancel is not None:
-                    cancel.check()
-                f = layer(f)
-        # channels_last: the permute is free
-        f = f.permute(0, 2, 3, 1).cpu().contiguous()  # (2, rows, W, 64)
+        f = descriptors(net, x[:, :, y0:y1 + 2 * PAD], bf16, cancel).cpu().contiguous()
         if f.dtype == torch.bfloat16:  # the numba kernels widen and normalize it
             bits, shift = f.view(torch.int16).numpy().view(np.uint16), 16
         else:

@@ -179,17 +179,12 @@ def output_array(out, shape, dtype=np.float32):
     return out
 
 
-def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=1,
-                dtype=np.float32, cancel=None):
+def volume_type(cost, window, scale, dtype):
     """
-    Return the matching cost volume (H, W, max_disp) of a rectified pair (see module doc).
+    Return `dtype` as a numpy dtype if a `cost` volume times `scale` can be held in it.
 
-    Each cost is multiplied by the integer `scale`; the volume is in `dtype`: float32, or
-    uint16 for Census.
-
-    `left`, `right`: same-size gray or RGB arrays (uint8, uint16 or float). `out`: an array
-    to write the volume into (see `output_array`). `cancel`: a CancelFlag; once set, the
-    remaining rows are skipped (the volume is then incomplete: check the flag).
+    That is float32, or uint16 for Census costs that fit in 16 bits; ValueError otherwise,
+    or for a bad window or a `scale` that is not an integer >= 1.
     """
     check_window(cost, window)
     if not (isinstance(scale, (int, np.integer)) and not isinstance(scale, bool) and scale >= 1):
@@ -204,6 +199,22 @@ def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=
                              'do not fit in 16 bits')
     elif dtype != np.float32:
         raise ValueError(f'dtype must be float32 or uint16, got {dtype}')
+    return dtype
+
+
+def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=1,
+                dtype=np.float32, cancel=None):
+    """
+    Return the matching cost volume (H, W, max_disp) of a rectified pair (see module doc).
+
+    Each cost is multiplied by the integer `scale`; the volume is in `dtype`: float32, or
+    uint16 for Census.
+
+    `left`, `right`: same-size gray or RGB arrays (uint8, uint16 or float). `out`: an array
+    to write the volume into (see `output_array`). `cancel`: a CancelFlag; once set, the
+    remaining rows are skipped (the volume is then incomplete: check the flag).
+    """
+    dtype = volume_type(cost, window, scale, dtype)
     lg, rg = gray_pair(left, right)
     check_max_disp(max_disp, lg.shape[1])
     out = output_array(out, lg.shape + (int(max_disp),), dtype)

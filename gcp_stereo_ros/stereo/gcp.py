@@ -61,13 +61,23 @@ def refine(cost, gcp, cof_d, c_hi, c_low):
     if gcp.shape != cost.shape[:2] or cof_d.shape != cost.shape[:2]:
         raise ValueError(f'GCP mask {gcp.shape} and CNN disparity {cof_d.shape} must match '
                          f'the cost volume {cost.shape[:2]}')
-    if cost.dtype == np.uint16 and not all(float(v).is_integer() and 0 <= v <= UINT16_MAX
-                                           for v in (c_hi, c_low)):
+    _refine(cost, np.ascontiguousarray(gcp, np.bool_), np.ascontiguousarray(cof_d, np.int32),
+            *levels(cost.dtype, c_hi, c_low))
+    return cost
+
+
+def levels(dtype, c_hi, c_low):
+    """
+    Return C_hi and C_low as `dtype` scalars.
+
+    ValueError for a uint16 volume unless they are integers in [0, 65535].
+    """
+    dtype = np.dtype(dtype)
+    if dtype == np.uint16 and not all(float(v).is_integer() and 0 <= v <= UINT16_MAX
+                                      for v in (c_hi, c_low)):
         raise ValueError('a uint16 cost volume needs integer C_hi and C_low in '
                          f'[0, {UINT16_MAX}], got {c_hi}, {c_low}')
-    _refine(cost, np.ascontiguousarray(gcp, np.bool_), np.ascontiguousarray(cof_d, np.int32),
-            cost.dtype.type(c_hi), cost.dtype.type(c_low))
-    return cost
+    return dtype.type(c_hi), dtype.type(c_low)
 
 
 def gcp_quality(gcp, cof_d, gt, valid):

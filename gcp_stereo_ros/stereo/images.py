@@ -1,4 +1,5 @@
-"""Input checks and intensity conversions shared by every stage."""
+"""Input checks, intensity conversions and resampling shared by every stage."""
+import cv2
 import numpy as np
 
 # ITU-R BT.601 luma, as cv2.cvtColor and Pillow's convert('L') use.
@@ -42,11 +43,41 @@ def gray_pair(left, right):
     return lg, rg
 
 
-def standardize(gray):
-    """Per-image normalization of the paper: subtract the mean, divide by the std."""
+def mean_std(gray):
+    """Return the mean and the std (1 for a flat image) that `standardize` uses."""
     g = np.asarray(gray, dtype=np.float32)
     std = float(g.std())
-    return (g - float(g.mean())) / (std if std > 1e-6 else 1.0)
+    return float(g.mean()), (std if std > 1e-6 else 1.0)
+
+
+def standardize(gray):
+    """Per-image normalization of the paper: subtract the mean, divide by the std."""
+    mean, std = mean_std(gray)
+    return (np.asarray(gray, dtype=np.float32) - mean) / std
+
+
+def bin_area(gray, factor):
+    """
+    Return the mean of each `factor` x `factor` block of a float32 gray image.
+
+    Rows and columns past the last whole block are left out; ValueError if no block fits.
+    """
+    h, w = gray.shape[0] // factor, gray.shape[1] // factor
+    if h == 0 or w == 0:
+        raise ValueError(f'a {gray.shape[1]}x{gray.shape[0]} image holds no {factor}x{factor} '
+                         f'block to bin (downsample {factor})')
+    return cv2.resize(gray[:h * factor, :w * factor], (w, h), interpolation=cv2.INTER_AREA)
+
+
+def upsample(a, factor, shape):
+    """
+    Return `a` blown up to `shape` (H, W): each pixel repeated `factor` x `factor` times.
+
+    The rows and columns that `bin_area` left out repeat the last ones.
+    """
+    rows = np.minimum(np.arange(shape[0]) // factor, a.shape[0] - 1)
+    cols = np.minimum(np.arange(shape[1]) // factor, a.shape[1] - 1)
+    return np.take(np.take(a, rows, axis=0), cols, axis=1)
 
 
 def mask_image(mask):

@@ -14,11 +14,10 @@ import numpy as np
 
 from . import cost as cost_mod
 from .gcp import refine, select
-from .images import gray_pair
-from .sgm import aggregate, directions, disparity, path_sum_bound, PATHS
+from .images import bin_area, gray_pair, mean_std, upsample
+from .sgm import aggregate, directions, disparity, finish, path_sum_bound, PATHS
 
 MIB = 1 << 20
-DEVICE = re.compile(r'cpu|cuda(:[0-9]+)?')
 
 # Defaults for each matching cost, chosen by cross-validation on the validation frames
 # (README: "Method and results"); theta is on the calibrated scale (cnn.calibrated).
@@ -36,6 +35,7 @@ PAPER = {
             'gcp_lr_check': False},
 }
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
+DOWNSAMPLE = (1, 2, 4)
 
 
 @dataclass(frozen=True)
@@ -61,8 +61,11 @@ class StereoConfig:
     subpixel: bool = False
     lr_check: bool = False
     median: bool = False
+    # Match at 1/downsample of the resolution (area-binned images, max_disp / downsample);
+    # the outputs come back at full size, disparities in full-size pixels.
+    downsample: int = 1
     # Pairs whose pipeline would need more memory are refused (see `memory_bytes`). 3 GiB:
-    # with the process's own 0.6 GB the node stays under half of an 8 GB vehicle computer.
+    # with the process's own 0.4-0.6 GB the node stays under half of an 8 GB computer.
     memory_limit_mb: int = 3072
 
     @classmethod
@@ -99,17 +102,22 @@ class StereoConfig:
             raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
         if self.bf16 not in (True, False, 'auto'):
             raise ValueError(f"bf16 must be true, false or 'auto', got {self.bf16!r}")
-        if not (isinstance(self.device, str) and DEVICE.fullmatch(self.device)):
+        if not (self.device == 'cpu' or re.fullmatch(r'cuda(:\d+)?', self.device)):
             raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
-        if self.device != 'cpu':
-            from .cnn import check_device  # torch is imported only for a GPU
-            check_device(self.device)
+        if not (isinstance(self.downsample, (int, np.integer)) and not isinstance(
+                self.downsample, bool) and self.downsample in DOWNSAMPLE):
+            raise ValueError(f'downsample must be one of {DOWNSAMPLE}, got {self.downsample!r}')
         if not (isinstance(self.memory_limit_mb, (int, np.integer))
                 and not isinstance(self.memory_limit_mb, bool)
                 and 64 <= self.memory_limit_mb <= 1 << 20):
             raise ValueError('memory_limit_mb must be an integer in [64, 1048576], '
                              f'got {self.memory_limit_mb!r}')
         return self
+
+    @property
+    def matched_disp(self):
+        """Return the disparities searched at the matching resolution: max_disp / downsample."""
+        return -(-self.max_disp // self.downsample)
 
 
 @dataclass
@@ -143,47 +151,82 @@ def fixed_point_scale(cfg):
     return None
 
 
-def volume_dtype(cfg):
-    """Return the type of the cost and path-sum volumes: uint16 with a fixed-point scale."""
-    return np.dtype(np.float32 if fixed_point_scale(cfg) is None else np.uint16)
+def volume_arithmetic(cfg):
+    """
+    Return (scale, dtype, fixed) of the pipeline's volumes for `cfg`.
+
+    `fixed_point_scale` (None for float32), the volume type (uint16 with a scale, else
+    float32), and the map of a cost-unit parameter (P1, P2, C_hi, C_low) into the volume's.
+    """
+    scale = fixed_point_scale(cfg)
+    if scale is None:
+        return None, np.dtype(np.float32), lambda v: v
+    return scale, np.dtype(np.uint16), lambda v: round(v * scale)
 
 
-# Bytes per pixel besides the volumes, alive at once while the cost volume is built (the
-# gray pair 8, the CNN outputs 12, the Census bit strings 48), rounded up; it covers the
-# later stages too.
+# Bytes per matched pixel besides the volumes, alive at once while the cost volume is built
+# (the gray pair 8, the CNN outputs 12, the Census bit strings 48), rounded up; it covers
+# the later stages too.
 PIXEL_BYTES = 80
 # While the CNN runs: the gray pair, its network input and the CNN outputs (8 + 8 + 12 bytes
-# per pixel), and of one strip at most three layer outputs (a convolution's, its ReLU's, the
-# descriptors copied out).
+# per pixel), and of one strip four layer outputs' worth (a convolution's, its ReLU's, the
+# descriptors copied out, and oneDNN's scratchpad, which it keeps for the largest so far).
 CNN_PIXEL_BYTES = 28
-STRIP_LAYERS = 3
+STRIP_LAYERS = 4
+# With downsample > 1, per full-size pixel: the gray pair (8), the outputs blown up (17),
+# rounded up.
+FULL_PIXEL_BYTES = 32
 
 
 def memory_bytes(cfg, height, width):
     """
     Return an upper bound of the memory the pipeline allocates for a pair of this size.
 
-    The cost and path-sum volumes (H x W x D each, kept between frames) and the SGM sweep
-    buffers (3 rows of each path from above, W x D each), plus whichever needs more: the
-    CNN's arrays with one strip's activations (two images, 64 float32 maps of
-    STRIP_ROWS + 8 rows), or PIXEL_BYTES per pixel for the later stages. Measured peaks stay
-    below it (README, Implementation notes).
+    At the matching resolution (H/downsample x W/downsample, D = matched_disp): the cost and
+    path-sum volumes (H x W x D each, kept between frames) and the SGM sweep buffers (3 rows
+    of each path from above, W x D each), plus whichever needs more: the CNN's arrays with
+    one strip's activations (two images, 64 float32 maps of STRIP_ROWS + 8 rows), or
+    PIXEL_BYTES per pixel for the later stages; with downsample, FULL_PIXEL_BYTES per
+    full-size pixel. Measured peaks stay below it (README, "Failures, memory and shutdown").
     """
     fixed, per_disparity = _memory_terms(cfg, height, width)
-    return fixed + per_disparity * cfg.max_disp
+    return fixed + per_disparity * cfg.matched_disp
 
 
 def _memory_terms(cfg, height, width):
-    """Return (bytes, bytes per disparity) of `memory_bytes`."""
-    itemsize = volume_dtype(cfg).itemsize
+    """Return (bytes, bytes per matched disparity) of `memory_bytes`."""
+    f = cfg.downsample
+    h, w = height // f, width // f
+    itemsize = volume_arithmetic(cfg)[1].itemsize
     sweep_rows = 3 * sum(dy > 0 for _, dy in directions(cfg.paths))
-    per_disparity = (2 * height + sweep_rows) * width * itemsize
-    fixed = PIXEL_BYTES * height * width
+    per_disparity = (2 * h + sweep_rows) * w * itemsize
+    fixed = PIXEL_BYTES * h * w
     if cfg.use_gcp:
         from .cnn import FEATURES, PAD, STRIP_ROWS
-        strip = 2 * FEATURES * (min(STRIP_ROWS, height) + 2 * PAD) * (width + 2 * PAD) * 4
-        fixed = max(fixed, CNN_PIXEL_BYTES * height * width + STRIP_LAYERS * strip)
+        strip = 2 * FEATURES * (min(STRIP_ROWS, h) + 2 * PAD) * (w + 2 * PAD) * 4
+        fixed = max(fixed, CNN_PIXEL_BYTES * h * w + STRIP_LAYERS * strip)
+    if f > 1:
+        fixed += FULL_PIXEL_BYTES * height * width
     return fixed, per_disparity
+
+
+def check_memory(cfg, height, width):
+    """Raise ValueError if a pair of this size needs more than cfg.memory_limit_mb."""
+    need = memory_bytes(cfg, height, width)
+    if need <= cfg.memory_limit_mb * MIB:
+        return
+    fixed, per_disparity = _memory_terms(cfg, height, width)
+    fits = (cfg.memory_limit_mb * MIB - fixed) // per_disparity * cfg.downsample
+    f, nd = cfg.downsample, cfg.matched_disp
+    changes = ([f'lower max_disparity (at most {fits} fits)'] if fits >= 1 else []) + (
+        ['raise downsample'] if f < max(DOWNSAMPLE) else []) + ['raise memory_limit_mb']
+    what = ', '.join(changes[:-1]) + ', or ' + changes[-1] if len(changes) > 1 else changes[0]
+    raise ValueError(
+        f'{width}x{height} at max_disparity {cfg.max_disp}'
+        + (f', downsample {f},' if f > 1 else '')
+        + f' needs about {need / MIB:.0f} MB (two {width // f}x{height // f}x{nd} '
+        f'{volume_arithmetic(cfg)[1]} volumes), over memory_limit_mb {cfg.memory_limit_mb}: '
+        + what)
 
 
 def mmap_large_arrays():
@@ -202,21 +245,6 @@ def mmap_large_arrays():
         pass
 
 
-def check_memory(cfg, height, width):
-    """Raise ValueError if a pair of this size needs more than cfg.memory_limit_mb."""
-    need = memory_bytes(cfg, height, width)
-    if need <= cfg.memory_limit_mb * MIB:
-        return
-    fixed, per_disparity = _memory_terms(cfg, height, width)
-    fits = (cfg.memory_limit_mb * MIB - fixed) // per_disparity
-    lower = (f'lower max_disparity (at most {fits} fits), ' if fits >= 1 else '')
-    raise ValueError(
-        f'{width}x{height} at max_disparity {cfg.max_disp} needs about {need / MIB:.0f} MB '
-        f'(two {width}x{height}x{cfg.max_disp} {volume_dtype(cfg)} volumes), over '
-        f'memory_limit_mb {cfg.memory_limit_mb}: {lower}raise downsample, or raise '
-        'memory_limit_mb')
-
-
 class StereoPipeline:
     """
     Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
@@ -230,6 +258,9 @@ class StereoPipeline:
 
     def __init__(self, config=None, net=None, _workspace=None):
         self.config = (config or StereoConfig()).validate()
+        if self.config.device != 'cpu':
+            from .gpu import check_device
+            check_device(self.config.device)
         self._net = net
         self._workspace = {} if _workspace is None else _workspace
 
@@ -264,53 +295,82 @@ class StereoPipeline:
     def net(self):
         if self._net is None:
             from .cnn import load_net  # torch is imported only when GCPs are used
-            self._net = load_net(self.config.weights or None, self.config.device)
+            device = self.config.device
+            if device != 'cpu':
+                from .gpu import torch_device
+                device = torch_device(device)
+            self._net = load_net(self.config.weights or None, device)
         return self._net
 
     def __call__(self, left, right, confidence=None, cancel=None):
         """
         Return the StereoResult of a pair.
 
-        `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair and max_disp,
-        to sweep GCP/SGM parameters without running the CNN again. `cancel`: a CancelFlag
-        that another thread may set to stop the run (raises Cancelled within a row of a
-        kernel or a CNN layer). Raises ValueError for bad input or a pair that needs more
-        than memory_limit_mb.
+        `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair, max_disp and
+        downsample, as its StereoResult holds them, to sweep GCP/SGM parameters without
+        running the CNN again. `cancel`: a CancelFlag that another thread may set to stop the
+        run (raises Cancelled within a row of a CPU kernel or a CNN layer). Raises
+        ValueError for bad input or a pair that needs more than memory_limit_mb.
         """
         cfg = self.config
-        net = self.net if cfg.use_gcp and confidence is None else None
+        if cfg.use_gcp and confidence is not None and len(confidence) != 3:
+            raise ValueError('confidence must be (cof_c, cof_d, cof_dr), '
+                             'as StereoResult holds them')
         seconds = {}
         t = time.perf_counter()
 
         def lap(stage):
+            """Record the time since the last lap as `stage`; None only restarts the clock."""
             nonlocal t
             now = time.perf_counter()
-            seconds[stage] = now - t
+            if stage is not None:
+                seconds[stage] = now - t
             t = now
             if cancel is not None:
                 cancel.check()
 
         left, right = gray_pair(left, right)
         check_memory(cfg, *left.shape)
-        shape = left.shape + (cfg.max_disp,)
-        dtype = volume_dtype(cfg)
+        shape, f = left.shape, cfg.downsample
+        if f > 1:
+            left, right = bin_area(left, f), bin_area(right, f)
+            if cfg.use_gcp and confidence is not None:  # undo the upsampling of its run
+                h, w = left.shape
+                cof_c, cof_d, cof_dr = (np.asarray(a)[:h * f:f, :w * f:f] for a in confidence)
+                confidence = cof_c, cof_d // f, cof_dr // f
+            lap('downsample')
+        confidence = confidence if cfg.use_gcp else None
+        if cfg.device == 'cpu':
+            outputs = self._match(left, right, confidence, lap, seconds, cancel)
+        else:
+            outputs = self._match_cuda(left, right, confidence, lap, seconds)
+        if f > 1:  # back to full size, disparities in full-size pixels
+            disp, gcp, cof_c, cof_d, cof_dr = outputs
+            disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
+                                   for a in (disp, cof_d, cof_dr))
+            outputs = tuple(None if a is None else upsample(a, f, shape)
+                            for a in (disp, gcp, cof_c, cof_d, cof_dr))
+            lap('upsample')
+        return StereoResult(*outputs, seconds)
+
+    def _match(self, left, right, confidence, lap, seconds, cancel):
+        """Return (disparity, gcp, cof_c, cof_d, cof_dr) of a gray pair, on the CPU."""
+        cfg = self.config
+        nd = cfg.matched_disp
+        shape = left.shape + (nd,)
+        scale, dtype, fixed = volume_arithmetic(cfg)
         # Kept arrays of another shape or type are let go now, before anything is allocated.
         kept = {name: self._array(name, shape, dtype) for name in ('cost', 'total')}
         gcp = cof_c = cof_d = cof_dr = None
-        if net is not None:
-            from .cnn import confidence as cnn_confidence
-            confidence = cnn_confidence(net, left, right, cfg.max_disp, cfg.device, cfg.bf16,
-                                        seconds=seconds, cancel=cancel)
-            t = time.perf_counter()
         if cfg.use_gcp:
-            if len(confidence) != 3:
-                raise ValueError('confidence must be (cof_c, cof_d, cof_dr), '
-                                 'as StereoResult holds them')
+            if confidence is None:
+                from .cnn import confidence as cnn_confidence
+                confidence = cnn_confidence(self.net, left, right, nd, cfg.device, cfg.bf16,
+                                            seconds=seconds, cancel=cancel)
+                lap(None)  # the CNN timed its own stages
             cof_c, cof_d, cof_dr = confidence
-        scale = fixed_point_scale(cfg)
-        fixed = (lambda v: v) if scale is None else (lambda v: round(v * scale))
-        volume = cost_mod.cost_volume(left, right, cfg.max_disp, cfg.cost, cfg.window,
-                                      kept['cost'], scale or 1, dtype, cancel)
+        volume = cost_mod.cost_volume(left, right, nd, cfg.cost, cfg.window, kept['cost'],
+                                      scale or 1, dtype, cancel)
         lap('cost')
         if cfg.use_gcp:
             gcp = select(cof_c, cof_d, cof_dr, cfg.theta, cfg.gcp_lr_check)
@@ -322,4 +382,66 @@ class StereoPipeline:
         lap('sgm')
         disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median, cancel)
         lap('wta')
-        return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds)
+        return disp, gcp, cof_c, cof_d, cof_dr
+
+    def _match_cuda(self, left, right, confidence, lap, seconds):
+        """
+        Return `_match`'s outputs, computed on the GPU `config.device` (see `gpu`).
+
+        One upload of the pair (and of `confidence` if given), the volumes stay in GPU
+        memory, one download of the outputs. The device is synchronized at each stage's end,
+        so that the stage times are the GPU's.
+        """
+        import torch
+
+        from . import gpu
+        from .cnn import device_confidence, padded_input
+        from .cost_cuda import cost_volume
+        from .gcp_cuda import select_refine
+        from .sgm_cuda import aggregate, winners
+
+        def stage(name):
+            gpu.synchronize()
+            lap(name)
+
+        cfg = self.config
+        nd = cfg.matched_disp
+        scale, dtype, fixed = volume_arithmetic(cfg)
+        shape, vtype = left.shape + (nd,), gpu.VOLUME_TYPES[dtype]
+        device = gpu.torch_device(cfg.device)
+        with gpu.current(cfg.device):
+            stats = [mean_std(g) for g in (left, right)]
+            pair = torch.from_numpy(np.stack([left, right])).to(device)
+            if cfg.use_gcp and confidence is not None:
+                cof = [torch.from_numpy(np.ascontiguousarray(a, t)).to(device)
+                       for a, t in zip(confidence, (np.float32, np.int32, np.int32))]
+            stage('upload')
+            if cfg.use_gcp or cfg.cost == 'sad':  # images.standardize on the device
+                standardized = torch.stack([(g - m) / s for g, (m, s) in zip(pair, stats)])
+            if cfg.use_gcp and confidence is None:
+                cof = device_confidence(self.net, padded_input(standardized), nd, cfg.bf16,
+                                        seconds)
+                lap(None)  # the CNN timed its own stages
+            volume = cost_volume(pair if cfg.cost == 'census' else standardized, nd, cfg.cost,
+                                 cfg.window, self._array('cuda_cost', shape, vtype),
+                                 scale or 1, dtype)
+            top = cost_mod.max_cost(cfg.cost, cfg.window) * (scale or 1)
+            stage('cost')
+            gcp = None
+            if cfg.use_gcp:
+                gcp = select_refine(volume, *cof, cfg.theta, fixed(cfg.c_hi), fixed(cfg.c_low),
+                                    cfg.gcp_lr_check)
+                top = max(top, fixed(cfg.c_hi))
+                stage('refine')
+            total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, top,
+                              self._array('cuda_total', shape, vtype))
+            self._workspace.update(cuda_cost=volume, cuda_total=total)
+            stage('sgm')
+            disp, consistent = winners(total, cfg.subpixel, cfg.lr_check)
+            stage('wta')
+            fresh = cof if cfg.use_gcp and confidence is None else []
+            disp, consistent, gcp, *fresh = (None if a is None else a.cpu().numpy()
+                                             for a in (disp, consistent, gcp, *fresh))
+            lap('download')
+        cof_c, cof_d, cof_dr = fresh or confidence or (None,) * 3
+        return finish(disp, consistent, cfg.median), gcp, cof_c, cof_d, cof_dr

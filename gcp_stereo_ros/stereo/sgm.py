@@ -45,6 +45,17 @@ def directions(paths):
     return dirs
 
 
+def summation_order(paths):
+    """
+    Return all `paths` directions (dx, dy), in the order S adds up their L_r in each cell.
+
+    The two horizontal paths, those from above as `directions` lists them, then their
+    opposites: the order of the sweeps below, which the CUDA twin keeps.
+    """
+    above = [d for d in directions(paths) if d[1] > 0]
+    return [(1, 0), (-1, 0)] + above + [(-dx, -dy) for dx, dy in above]
+
+
 def path_sum_bound(paths, max_cost, p2):
     """Return the largest value S can take: each path's L_r <= C + P2."""
     return paths * (max_cost + p2)
@@ -194,6 +205,28 @@ def as_volume(a):
     return np.ascontiguousarray(a, dtype=np.uint16 if a.dtype == np.uint16 else np.float32)
 
 
+def penalties(dtype, p1, p2, paths, top):
+    """
+    Return P1 and P2 as `dtype` scalars for a volume whose largest cost is `top`.
+
+    ValueError unless 0 <= P1 <= P2, `paths` is 4, 8 or 16 and, for uint16, P1 and P2 are
+    integers and paths * (top + P2) is at most 65535.
+    """
+    p1, p2 = float(p1), float(p2)
+    if not (0 <= p1 <= p2):
+        raise ValueError(f'SGM penalties need 0 <= P1 <= P2, got P1={p1}, P2={p2}')
+    directions(paths)
+    dtype = np.dtype(dtype)
+    if dtype == np.uint16:
+        if not (p1.is_integer() and p2.is_integer()):
+            raise ValueError(f'a uint16 cost volume needs integer penalties, got P1={p1}, P2={p2}')
+        if path_sum_bound(paths, int(top), p2) > UINT16_MAX:
+            raise ValueError(f'uint16 path sums would overflow: {paths} paths * '
+                             f'(max cost {top} + P2 {p2:g}) > {UINT16_MAX}; '
+                             'use a float32 volume')
+    return dtype.type(p1), dtype.type(p2)
+
+
 def aggregate(cost, p1, p2, paths=16, out=None, cancel=None):
     """
     Return the summed path costs S (H, W, D) of a cost volume (see module doc).
@@ -213,29 +246,31 @@ def aggregate(cost, p1, p2, paths=16, out=None, cancel=None):
     if bad:
         raise ValueError(f'cost volume has {bad} cells that are negative, NaN or infinite; '
                          'SGM needs finite costs >= 0')
-    p1, p2 = float(p1), float(p2)
-    if not (0 <= p1 <= p2):
-        raise ValueError(f'SGM penalties need 0 <= P1 <= P2, got P1={p1}, P2={p2}')
-    dirs = directions(paths)
-    if cost.dtype == np.uint16:
-        if not (p1.is_integer() and p2.is_integer()):
-            raise ValueError(f'a uint16 cost volume needs integer penalties, got P1={p1}, P2={p2}')
-        if path_sum_bound(paths, int(top), p2) > UINT16_MAX:
-            raise ValueError(f'uint16 path sums would overflow: {paths} paths * '
-                             f'(max cost {top} + P2 {p2:g}) > {UINT16_MAX}; '
-                             'use a float32 volume')
+    p1, p2 = penalties(cost.dtype, p1, p2, paths, top)
     total = output_array(out, cost.shape, cost.dtype)
     if np.shares_memory(total, cost):
         raise ValueError('out must not overlap the cost volume')
-    p1, p2 = cost.dtype.type(p1), cost.dtype.type(p2)
     flag = flag_array(cancel)
     _horizontal(cost, p1, p2, total, flag)
-    down = np.array([d for d in dirs if d[1] > 0], np.int64)
+    down = np.array([d for d in directions(paths) if d[1] > 0], np.int64)
     # Seen from a bottom-up sweep, (dx, dy) from below is (-dx, dy) from above.
     up = np.array([(-dx, dy) for dx, dy in down], np.int64)
     _sweep(cost, p1, p2, total, down, True, flag)
     _sweep(cost, p1, p2, total, up, False, flag)
     return total
+
+
+@njit(inline='always')
+def parabola_offset(lo, mid, hi):
+    """
+    Return the sub-pixel offset of a parabola's minimum through S at d - 1, d, d + 1.
+
+    In float64, 0 unless the parabola opens upwards: the CPU and CUDA WTA share it, so their
+    sub-pixel disparities round alike.
+    """
+    lo, mid, hi = float(lo), float(mid), float(hi)
+    curv = lo - 2.0 * mid + hi
+    return (lo - hi) / (2.0 * curv) if curv > 0 else 0.0
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -251,12 +286,9 @@ def _wta(total, subpixel, lr_tol, out, consistent, cancel):
             best = 0
             while keys[best] != m:
                 best += 1
-            disp = np.float32(best)
+            offset = 0.0
             if subpixel and 0 < best < nd - 1:
-                lo, mid, hi = np.float32(s[best - 1]), np.float32(s[best]), np.float32(s[best + 1])
-                curv = lo - 2 * mid + hi
-                if curv > 0:
-                    disp += (lo - hi) / (2 * curv)
+                offset = parabola_offset(s[best - 1], s[best], s[best + 1])
             if lr_tol >= 0:
                 # Right-view WTA at xr = x - best: argmin_d S(xr + d, d) over cells inside the
                 # image.
@@ -266,7 +298,7 @@ def _wta(total, subpixel, lr_tol, out, consistent, cancel):
                     if total[y, xr + d, d] < total[y, xr + rbest, rbest]:
                         rbest = d
                 consistent[y, x] = abs(rbest - best) <= lr_tol
-            out[y, x] = disp
+            out[y, x] = best + offset
 
 
 def disparity(total, subpixel=False, lr_check=False, median=False, cancel=None):
@@ -289,7 +321,12 @@ def disparity(total, subpixel=False, lr_check=False, median=False, cancel=None):
     out = np.empty(total.shape[:2], np.float32)
     consistent = np.ones(total.shape[:2], np.bool_)
     _wta(total, subpixel, 1 if lr_check else -1, out, consistent, flag_array(cancel))
+    return finish(out, consistent, median)
+
+
+def finish(disp, consistent, median):
+    """Return the WTA disparity `disp` after the optional median, NaN where not `consistent`."""
     if median:
-        out = cv2.medianBlur(out, 3)
-    out[~consistent] = np.nan
-    return out
+        disp = cv2.medianBlur(disp, 3)
+    disp[~consistent] = np.nan
+    return disp

@@ -8,7 +8,9 @@ gcp-stereo-bag: rosbag2 tools for gcp_stereo_node, no ROS install needed (rosbag
 Bags written by `make` (every topic under --namespace; all messages of a frame carry the
 frame's stamp as header stamp and as bag timestamp, the ground truth written first):
   left/image_rect, right/image_rect    sensor_msgs/Image, rgb8 or mono8 as the dataset stores
-                                       it; frame_id left_camera, right_camera
+                                       it; frame_id left_camera, right_camera (with
+                                       --compressed: left/image_rect/compressed, ...,
+                                       sensor_msgs/CompressedImage, png or jpeg)
   left/camera_info, right/camera_info  sensor_msgs/CameraInfo; when the dataset knows them, f in
                                        K and P and P_right[3] = -f * baseline (principal point
                                        at the image centre), else K = P = 0 (uncalibrated)
@@ -19,15 +21,19 @@ frame's stamp as header stamp and as bag timestamp, the ground truth written fir
 Images and camera_info are recorded with the sensor-data QoS (best effort, volatile, keep
 last 5) the node subscribes with; the ground truth with the default QoS (reliable).
 
-`run` pairs left and right images by stamp (the node's sync parameters: exact by default)
-and scores a pair against the gt/ messages whose bag timestamp is the pair's stamp. Its
-output bag holds every input message (earlier outputs excepted) plus, under the same
-namespace and built as the node builds them, `disparity` (stereo_msgs/DisparityImage),
-`gcp_mask` (mono8, 255 = GCP) and `confidence` (32FC1; the node sends it only while
-subscribed), stamped with the left header and written at the bag timestamp of the image that
-completed the pair. A pair the node would skip (bad image, camera_info or size) is skipped
-with a line on stderr. Bags are written to a hidden sibling and renamed into place on
-success; Ctrl-C or SIGTERM removes it, and one left by a killed run is removed by the next.
+`run` reads any recording with one stereo pair of image topics (sensor_msgs/Image or
+CompressedImage, rectified, or raw with --rectify): --left and --right name them, else the
+pair is found (two image topics whose names differ only in left/right), and so are their
+camera_info topics (beside the image topics; --left-info, --right-info). It pairs images by
+stamp (the node's sync parameters: exact by default) and scores a pair against the gt/
+messages whose bag timestamp is the pair's stamp. Its output bag holds every input message
+(earlier outputs excepted) plus the --outputs (default disparity, gcp_mask, confidence; also
+depth, points2), built as the node builds them, under the stereo namespace (--namespace, or
+the part of the image topics before left/right), stamped with the left header and written
+at the bag timestamp of the image that completed the pair. A pair the node would skip
+(a bad image, a pair over memory_limit_mb) is skipped with a line on stderr. Bags are
+written to a hidden sibling and renamed into place on success; Ctrl-C or SIGTERM removes
+it, and one left by a killed run is removed by the next run on the same output.
 """
 import argparse
 from contextlib import contextmanager
@@ -52,20 +58,22 @@ from ..evaluation.datasets import list_frames, load_frames
 from ..evaluation.metrics import error_rates, THRESHOLDS
 from ..evaluation.viz import colorize, save_png
 from ..ros import messages
+from ..ros.camera import Rectifier, stereo_model
 from ..ros.graph import shm_segment_bytes
 from ..ros.params import config_from_params, config_warnings, load_params_file, make_sync
-from ..ros.rosimage import image_to_array
+from ..ros.rosimage import array_to_compressed_fields, image_to_array, message_to_array
 from ..ros.sync import SIDES
 from ..stereo.images import mask_image
 from ..stereo.pipeline import mmap_large_arrays, StereoPipeline
 
 PROG = 'gcp-stereo-bag'
 IMAGE, INFO, STRING = 'sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'std_msgs/msg/String'
-DISPARITY = 'stereo_msgs/msg/DisparityImage'
+COMPRESSED = 'sensor_msgs/msg/CompressedImage'
+DISPARITY, POINTS = 'stereo_msgs/msg/DisparityImage', 'sensor_msgs/msg/PointCloud2'
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 TYPES = SimpleNamespace(**{t.rsplit('/', 1)[1]: TYPESTORE.types[t] for t in (
-    IMAGE, INFO, STRING, DISPARITY, 'sensor_msgs/msg/RegionOfInterest', 'std_msgs/msg/Header',
-    'builtin_interfaces/msg/Time')})
+    IMAGE, COMPRESSED, INFO, STRING, DISPARITY, POINTS, 'sensor_msgs/msg/PointField',
+    'sensor_msgs/msg/RegionOfInterest', 'std_msgs/msg/Header', 'builtin_interfaces/msg/Time')})
 
 
 def _qos(reliability, depth):
@@ -76,12 +84,12 @@ def _qos(reliability, depth):
 
 SENSOR_QOS = _qos(QosReliability.BEST_EFFORT, 5)  # rclpy's qos_profile_sensor_data
 DEFAULT_QOS = _qos(QosReliability.RELIABLE, 10)  # rclpy's default publisher QoS
-NODE_OUT_QOS = _qos(QosReliability.RELIABLE, 5)  # the node's publishers
-INPUTS = {f'{side}/{kind}': (msgtype, SENSOR_QOS)
-          for kind, msgtype in (('image_rect', IMAGE), ('camera_info', INFO)) for side in SIDES}
+NODE_OUT_QOS = _qos(QosReliability.RELIABLE, 1)  # the node's publishers
 GT = {'gt/frame_name': (STRING, DEFAULT_QOS), 'gt/disparity': (IMAGE, DEFAULT_QOS),
       'gt/valid': (IMAGE, DEFAULT_QOS)}
-OUTPUTS = {'disparity': DISPARITY, 'gcp_mask': IMAGE, 'confidence': IMAGE}
+OUTPUTS = {'disparity': DISPARITY, 'gcp_mask': IMAGE, 'confidence': IMAGE, 'depth': IMAGE,
+           'points2': POINTS}
+IMAGE_TYPES = (IMAGE, COMPRESSED)
 MATCH_SETTLE_SECONDS = 3.0  # see wait_for_subscribers
 # Before exiting: a player exiting right after publishing lost its last best-effort
 # messages in 2 of 20 plays, in none of 45 after lingering this long.
@@ -175,6 +183,7 @@ def output_bag(out, storage, force):
         shutil.rmtree(staging, ignore_errors=True)
 
 
+# ---- make -------------------------------------------------------------------------------
 def _alive(pid):
     try:
         os.kill(pid, 0)
@@ -185,7 +194,6 @@ def _alive(pid):
     return True
 
 
-# ---- make -------------------------------------------------------------------------------
 def camera_info(header, frame, side):
     """
     Return the CameraInfo of a rectified camera of `frame`.
@@ -202,7 +210,14 @@ def camera_info(header, frame, side):
         roi=TYPES.RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
 
 
-def frame_messages(frame, stamp_ns):
+def input_topics(compressed=None):
+    """{topic name without namespace: (msgtype, QoS)} of the inputs `make` writes."""
+    image = ('image_rect/compressed', COMPRESSED) if compressed else ('image_rect', IMAGE)
+    return {f'{side}/{kind}': (msgtype, SENSOR_QOS)
+            for kind, msgtype in (image, ('camera_info', INFO)) for side in SIDES}
+
+
+def frame_messages(frame, stamp_ns, compressed=None):
     """{topic name without namespace: message} of one frame, ground truth first."""
     msgs = {}
     headers = {side: _header(stamp_ns, f'{side}_camera') for side in SIDES}
@@ -218,8 +233,12 @@ def frame_messages(frame, stamp_ns):
         msgs[f'{side}/camera_info'] = camera_info(headers[side], frame, side)
     for side in SIDES:
         image = getattr(frame, side)
-        msgs[f'{side}/image_rect'] = messages.image_message(TYPES, headers[side], image,
-                                                            'rgb8' if image.ndim == 3 else 'mono8')
+        if compressed:
+            msgs[f'{side}/image_rect/compressed'] = TYPES.CompressedImage(
+                header=headers[side], **array_to_compressed_fields(image, compressed))
+        else:
+            msgs[f'{side}/image_rect'] = messages.image_message(
+                TYPES, headers[side], image, 'rgb8' if image.ndim == 3 else 'mono8')
     return msgs
 
 
@@ -230,35 +249,82 @@ def make(args):
     with output_bag(args.out, args.storage, args.force) as writer:
         conns = {name: writer.add_connection(topic_name(args.namespace, name), msgtype,
                                              typestore=TYPESTORE, offered_qos_profiles=[qos])
-                 for name, (msgtype, qos) in {**GT, **INPUTS}.items()}
+                 for name, (msgtype, qos) in {**GT, **input_topics(args.compressed)}.items()}
         frames = load_frames(args.dataset, names)
         for i, frame in enumerate(tqdm(frames, total=len(names), unit='frame', leave=False)):
             stamp = start_ns + i * period_ns
-            for name, msg in frame_messages(frame, stamp).items():
+            for name, msg in frame_messages(frame, stamp, args.compressed).items():
                 writer.write(conns[name], stamp, TYPESTORE.serialize_cdr(msg, conns[name].msgtype))
-    print(f'{args.out}: {len(names)} frame(s) at {args.rate:g} Hz ({args.storage})')
+    print(f'{args.out}: {len(names)} frame(s) at {args.rate:g} Hz ({args.storage}'
+          f'{", " + args.compressed if args.compressed else ""})')
 
 
 # ---- run --------------------------------------------------------------------------------
-def check_topics(reader, path, namespace):
+def _stereo_namespace(left, right):
     """
-    Return {topic: name without namespace} of the inputs and ground truth `run` reads.
+    Return the part of two image topics before their left/right token; None if not a pair.
 
-    Raises ValueError unless both image topics exist, or if a known topic has the wrong type.
+    E.g. /cam/left/image_rect + /cam/right/image_rect -> '/cam', /left/image + /right/image
+    -> '': the topics differ in one token only, which holds 'left' in one, 'right' in the other.
     """
-    wanted = {topic_name(namespace, name): (name, msgtype)
-              for name, (msgtype, _) in {**INPUTS, **GT}.items()}
-    topics = {c.topic: c.msgtype for c in reader.connections}
-    for side in SIDES:
-        topic = topic_name(namespace, f'{side}/image_rect')
-        if topic not in topics:
-            raise ValueError(f'{path}: no {topic} topic '
-                             f'(topics: {", ".join(sorted(topics)) or "none"}); '
-                             'set --namespace if the images are under one')
-    for topic, msgtype in topics.items():
-        if topic in wanted and msgtype != wanted[topic][1]:
-            raise ValueError(f'{path}: {topic} is {msgtype}, expected {wanted[topic][1]}')
-    return {topic: name for topic, (name, _) in wanted.items() if topic in topics}
+    a, b = left.strip('/').split('/'), right.strip('/').split('/')
+    differ = [i for i, (x, y) in enumerate(zip(a, b)) if x != y]
+    if len(a) != len(b) or len(differ) != 1:
+        return None
+    i = differ[0]
+    if 'left' not in a[i] or a[i].replace('left', 'right') != b[i]:
+        return None
+    return '/' + '/'.join(a[:i]) if i else ''
+
+
+def _info_topic(image_topic):
+    """Return the camera_info topic beside an image topic, as image_transport finds it."""
+    base = image_topic.removesuffix('/compressed')
+    return base.rsplit('/', 1)[0] + '/camera_info'
+
+
+def find_topics(reader, path, args):
+    """
+    Return the topics `run` reads, by role, and the output namespace.
+
+    {'left', 'right': image topic, 'left_info', 'right_info': camera_info topic or None,
+    'ns': namespace of the outputs and ground truth}.
+
+    Raises ValueError naming the bag's topics when the stereo pair cannot be found, or when a
+    topic is missing or of the wrong type.
+    """
+    types = {c.topic: c.msgtype for c in reader.connections}
+    listing = ', '.join(f'{t} ({m.rsplit("/", 1)[1]})' for t, m in sorted(types.items())) or 'none'
+    ns = args.namespace.strip('/')
+    if args.left or args.right:
+        if not (args.left and args.right):
+            raise ValueError('--left and --right go together')
+        left, right = args.left, args.right
+    else:
+        images = [t for t, m in types.items() if m in IMAGE_TYPES
+                  and (not ns or t.startswith(f'/{ns}/'))]
+        pairs = [(t, u) for t in images for u in images if _stereo_namespace(t, u) is not None]
+        if len(pairs) != 1:
+            found = ('; stereo pairs: ' + ', '.join(f'{a} + {b}' for a, b in pairs)
+                     if pairs else '')
+            raise ValueError(f'{path}: {"no" if not pairs else "more than one"} stereo pair of '
+                             f'image topics (topics: {listing}){found}; name them with --left '
+                             'and --right')
+        (left, right), = pairs
+    topics = {'left': left, 'right': right,
+              'left_info': args.left_info or _info_topic(left),
+              'right_info': args.right_info or _info_topic(right)}
+    for role, topic in topics.items():
+        want = (INFO,) if role.endswith('info') else IMAGE_TYPES
+        if topic not in types:
+            if role.endswith('info') and not getattr(args, role):
+                topics[role] = None  # no calibration: no depth or points2
+                continue
+            raise ValueError(f'{path}: no {topic} topic (topics: {listing})')
+        if types[topic] not in want:
+            raise ValueError(f'{path}: {topic} is {types[topic]}, expected {" or ".join(want)}')
+    topics['ns'] = f'/{ns}' if ns else _stereo_namespace(left, right) or ''
+    return topics
 
 
 RATE_KEYS = [f'bad{t}' for t in THRESHOLDS] + ['mae']
@@ -268,55 +334,74 @@ def print_rates(label, rates):
     tqdm.write(''.join(f'{rates[k]:8.2f}' for k in RATE_KEYS) + f'  {label}')
 
 
+def warn(text):
+    tqdm.write(f'{PROG}: warning: {text}', file=sys.stderr)
+
+
 class Runner:
     """Turns input messages into output messages, pair by pair, as the node does."""
 
-    def __init__(self, pipeline, sync, writer, namespace, png_dir):
+    def __init__(self, pipeline, sync, writer, topics, values, outputs, rectify, png_dir):
         self.pipeline, self.sync, self.writer, self.png_dir = pipeline, sync, writer, png_dir
-        self.processed = 0
-        self.skipped = 0
-        self.conns = {name: writer.add_connection(topic_name(namespace, name), msgtype,
-                                                  typestore=TYPESTORE,
-                                                  offered_qos_profiles=[NODE_OUT_QOS])
-                      for name, msgtype in OUTPUTS.items()}
-        self.topics = {name: topic_name(namespace, name) for name in INPUTS}
+        self.topics, self.values, self.outputs, self.rectify = topics, values, outputs, rectify
+        self.conns = {}
+        self.rectifier = Rectifier()
         self.info = dict.fromkeys(SIDES)
         self.gt = {}  # bag timestamp -> {'gt/...': message} until its pair comes
         self.rates = []
+        self.warned = set()
+        self.processed = 0
+        self.skipped = 0
 
-    def add(self, name, msg, timestamp):
-        """Take one message of input `name` (as in INPUTS or GT) logged at `timestamp`."""
-        side = name.split('/')[0]
-        if name.startswith('gt/'):
-            self.gt.setdefault(timestamp, {})[name] = msg
-        elif name.endswith('camera_info'):
-            self.info[side] = msg
+    def add(self, role, msg, timestamp):
+        """Take one message of `role` (left, right, left_info, right_info, gt/...)."""
+        if role.startswith('gt/'):
+            self.gt.setdefault(timestamp, {})[role] = msg
+        elif role.endswith('_info'):
+            self.info[role.removesuffix('_info')] = msg
         else:
-            pair = self.sync.add(side, messages.stamp_ns(msg.header), msg, len(msg.data))
+            pair = self.sync.add(role, messages.stamp_ns(msg.header), msg, len(msg.data))
             if pair is not None:
                 self.process(*pair, timestamp)
+
+    def image(self, side, msg):
+        image = message_to_array(msg, self.topics[side])
+        if self.rectify:
+            return self.rectifier(side, self.info[side], image, self.topics[side])
+        return image
+
+    def warn_once(self, text):
+        if text not in self.warned:
+            self.warned.add(text)
+            warn(text)
 
     def process(self, stamp, left_msg, right_msg, timestamp):
         config = self.pipeline.config
         try:
-            left = image_to_array(left_msg, self.topics['left/image_rect'])
-            right = image_to_array(right_msg, self.topics['right/image_rect'])
-            geom = messages.geometry(self.info['left'], self.info['right'], left.shape[:2],
-                                     config.max_disp)
+            left, right = self.image('left', left_msg), self.image('right', right_msg)
             result = self.pipeline(left, right)
         except ValueError as err:  # as the node: say why, go on with the next pair
             self.skipped += 1
-            tqdm.write(f'{PROG} run: skipping pair at stamp {stamp} ns: {err}', file=sys.stderr)
+            tqdm.write(f'{PROG}: skipping pair at stamp {stamp} ns: {err}', file=sys.stderr)
             return
         self.processed += 1
-        header = left_msg.header
-        out = {'disparity': messages.disparity_message(TYPES, header, result.disparity,
-                                                       config, geom)}
-        if result.gcp is not None:
-            out['gcp_mask'] = messages.image_message(TYPES, header, mask_image(result.gcp),
-                                                     'mono8')
-            out['confidence'] = messages.image_message(TYPES, header, result.cof_c, '32FC1')
+        try:
+            model = stereo_model(self.info['left'], self.info['right'], left.shape,
+                                 config.max_disp)
+        except ValueError as err:
+            model = None
+            if None not in self.info.values():  # calibrated, but wrongly
+                self.warn_once(f'camera_info ignored (no f, t, depth or points2): {err}')
+            elif {'depth', 'points2'} & self.outputs:
+                self.warn_once(f'no depth or points2: {err}')
+        out = messages.output_messages(
+            TYPES, left_msg.header, self.outputs, result, config, model, left,
+            self.values.get('use_color', True), not self.values.get('avoid_point_cloud_padding'))
         for name, msg in out.items():
+            if name not in self.conns:
+                self.conns[name] = self.writer.add_connection(
+                    topic_name(self.topics['ns'], name), OUTPUTS[name], typestore=TYPESTORE,
+                    offered_qos_profiles=[NODE_OUT_QOS])
             self.writer.write(self.conns[name], timestamp,
                               TYPESTORE.serialize_cdr(msg, OUTPUTS[name]))
 
@@ -354,7 +439,7 @@ def run_pipeline(values):
     if pipeline.config.use_gcp:
         pipeline.net  # a missing weights file fails here, before any output
     for text in config_warnings(pipeline):
-        print(f'{PROG} run: warning: {text}', file=sys.stderr)
+        warn(text)
     return pipeline
 
 
@@ -365,38 +450,46 @@ def convert(pipeline, values, args):
     `values`: the node parameters (the pair sync's); args: the options of `run`.
     """
     sync = make_sync(values)
+    rectify = args.rectify or values.get('rectify', False)
     with open_bag(args.inp) as reader, output_bag(args.out, args.storage, args.force) as writer:
-        names = check_topics(reader, args.inp, args.namespace)
-        runner = Runner(pipeline, sync, writer, args.namespace, args.png)
+        topics = find_topics(reader, args.inp, args)
+        roles = {topics[r]: r for r in ('left', 'right', 'left_info', 'right_info') if topics[r]}
+        roles.update({topic_name(topics['ns'], name): name for name in GT})
+        types = {c.topic: c.msgtype for c in reader.connections}
+        for topic, role in roles.items():
+            if role in GT and topic in types and types[topic] != GT[role][0]:
+                raise ValueError(f'{args.inp}: {topic} is {types[topic]}, expected {GT[role][0]}')
+        runner = Runner(pipeline, sync, writer, topics, values, args.outputs, rectify, args.png)
         # outputs of an earlier run
-        replaced = {topic_name(args.namespace, name) for name in OUTPUTS}
+        replaced = {topic_name(topics['ns'], name) for name in OUTPUTS}
         copies = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=TYPESTORE,
                                               msgdef=c.msgdef.data or None,
                                               rihs01=c.digest or None,
                                               offered_qos_profiles=c.ext.offered_qos_profiles)
                   for c in reader.connections if c.topic not in replaced}
-        if 'gt/disparity' in names.values():
+        if any(types.get(t) for t, r in roles.items() if r == 'gt/disparity'):
             tqdm.write(''.join(f'{k:>8}' for k in RATE_KEYS) + '  frame')
-        lefts = sum(c.msgcount for c in reader.connections
-                    if names.get(c.topic) == 'left/image_rect')
+        lefts = sum(c.msgcount for c in reader.connections if c.topic == topics['left'])
         with tqdm(total=lefts, unit='pair', leave=False) as bar:
             for conn, timestamp, raw in read_messages(reader, args.inp):
                 if conn.id in copies:
                     writer.write(copies[conn.id], timestamp, raw)
-                if conn.topic in names:
-                    runner.add(names[conn.topic], deserialize(raw, conn, timestamp, args.inp),
+                if conn.topic in roles:
+                    runner.add(roles[conn.topic], deserialize(raw, conn, timestamp, args.inp),
                                timestamp)
                     bar.update(sync.pairs - bar.n)
         if sync.pairs == 0:
-            raise ValueError(f'{args.inp}: no left/right image pair with matching stamps')
+            raise ValueError(f'{args.inp}: no left/right image pair with matching stamps '
+                             f'on {topics["left"]} and {topics["right"]}')
         if runner.processed == 0:
             raise ValueError(f'{args.inp}: none of its {sync.pairs} pairs could be processed '
                              '(reasons above)')
     if runner.rates:
         print_rates('mean', {k: float(np.mean([r[k] for r in runner.rates])) for k in RATE_KEYS})
         print('(% of scored ground-truth pixels with error > N px; mae in px)')
-    print(f'{args.out}: {runner.processed} pairs processed, {runner.skipped} skipped; images '
-          f'without a twin skipped: left {sync.dropped_left}, right {sync.dropped_right}')
+    print(f'{args.out}: {runner.processed} pairs of {topics["left"]} + {topics["right"]} '
+          f'processed ({", ".join(sorted(runner.conns))} written), {runner.skipped} skipped; '
+          f'images without a twin skipped: left {sync.dropped_left}, right {sync.dropped_right}')
 
 
 # ---- play -------------------------------------------------------------------------------
@@ -414,7 +507,8 @@ def ros_qos(connection):
         return enum.SYSTEM_DEFAULT if value.name == 'UNKNOWN' else enum[value.name]
 
     if not connection.ext.offered_qos_profiles:
-        return qos_profile_sensor_data if connection.msgtype == IMAGE else QoSProfile(depth=10)
+        return (qos_profile_sensor_data if connection.msgtype in IMAGE_TYPES
+                else QoSProfile(depth=10))
     p = connection.ext.offered_qos_profiles[0]
     return QoSProfile(history=(HistoryPolicy.KEEP_ALL if p.history == QosHistory.KEEP_ALL
                                else HistoryPolicy.KEEP_LAST),
@@ -472,7 +566,8 @@ def play(args):
             if not publishers:
                 raise ValueError(f'{args.inp}: no topic with a message type known here')
             images = [publishers[c.topic] for c in reader.connections
-                      if c.msgtype == IMAGE and c.topic in publishers and '/gt/' not in c.topic]
+                      if c.msgtype in IMAGE_TYPES and c.topic in publishers
+                      and '/gt/' not in c.topic]
             wait_for_subscribers(images, args.wait_subscribers)
             segment, too_large = shm_segment_bytes(), set()
             while True:
@@ -507,21 +602,45 @@ def play(args):
 
 
 # ---- command line -----------------------------------------------------------------------
+def _outputs(text):
+    names = {n.strip() for n in text.split(',') if n.strip()}
+    unknown = names - set(OUTPUTS)
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f'unknown output(s) {", ".join(sorted(unknown))}; '
+                                         f'choose from {",".join(OUTPUTS)}')
+    return names
+
+
 STORAGE = {'choices': ('sqlite3', 'mcap'), 'default': 'mcap',
            'help': 'storage plugin of the output bag (default mcap)'}
-NAMESPACE = {'default': '', 'metavar': 'NS',
-             'help': 'topics under this namespace (default: none, e.g. /left/image_rect)'}
 
 
 def add_run_options(ap):
     """Add the options of `run` that apply to any bag (all but --in, --out, --force) to `ap`."""
     ap.add_argument('--params', type=Path, metavar='YAML',
-                    help='node parameters file, e.g. config/gcp_stereo.yaml '
-                         '(default: the node defaults)')
+                    help='node parameters file, e.g. config/gcp_stereo.yaml, or what `ros2 '
+                         'param dump` wrote (default: the node defaults)')
+    ap.add_argument('--left', metavar='TOPIC',
+                    help='left image topic, sensor_msgs/Image or CompressedImage (default: '
+                         'the one stereo pair of image topics in the bag)')
+    ap.add_argument('--right', metavar='TOPIC', help='right image topic (with --left)')
+    ap.add_argument('--left-info', metavar='TOPIC',
+                    help='left camera_info topic (default: camera_info beside the left images, '
+                         'if the bag has it)')
+    ap.add_argument('--right-info', metavar='TOPIC', help='right camera_info topic')
+    ap.add_argument('--rectify', action='store_true',
+                    help='the images are raw: rectify them with the camera_info K, D, R, P '
+                         "(default: the params file's rectify, else false)")
+    ap.add_argument('--outputs', type=_outputs, default={'disparity', 'gcp_mask', 'confidence'},
+                    metavar='LIST',
+                    help=f'comma-separated outputs to write, of {",".join(OUTPUTS)} (default '
+                         'disparity,gcp_mask,confidence; depth and points2 need camera_info)')
     ap.add_argument('--png', type=Path, metavar='DIR',
                     help='write colour-mapped disparity and GCP-mask PNGs here')
     ap.add_argument('--storage', **STORAGE)
-    ap.add_argument('--namespace', **NAMESPACE)
+    ap.add_argument('--namespace', default='', metavar='NS',
+                    help='look for the stereo pair under this namespace and write the outputs '
+                         'there (default: the namespace of the image topics)')
 
 
 def parser():
@@ -542,11 +661,16 @@ def parser():
                     help='bag to write (a directory)')
     mk.add_argument('--rate', type=positive, default=10.0, metavar='HZ',
                     help='frames per second (default 10)')
-    mk.add_argument('--namespace', **NAMESPACE)
+    mk.add_argument('--namespace', default='', metavar='NS',
+                    help='topics under this namespace (default: none, e.g. /left/image_rect)')
+    mk.add_argument('--compressed', choices=('png', 'jpeg'),
+                    help='write sensor_msgs/CompressedImage on left/image_rect/compressed, '
+                         'right/image_rect/compressed, as image_transport does (png is '
+                         'lossless; jpeg quality 95)')
     mk.add_argument('--force', **force)
 
     rn = sub.add_parser('run', help='bag in -> bag out with disparity, gcp_mask, confidence, '
-                                    'as the node')
+                                    'depth, points2, as the node')
     rn.add_argument('--in', dest='inp', required=True, type=Path, metavar='BAG',
                     help='bag directory, or its .mcap / .db3 file')
     rn.add_argument('--out', required=True, type=Path, metavar='BAG',

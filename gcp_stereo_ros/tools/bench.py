@@ -5,6 +5,11 @@ A real pair is resized to KITTI size (1242x375) and matched with D = 128 dispari
 stage runs once to warm up (Numba compilation, torch kernels), then `--repeat` times; the
 median is reported, with its ratio to OpenCV's time on the same images. Machines are noisy:
 read the ratios, not the absolute seconds.
+
+The default pipeline runs end to end on the CPU as is and in bf16, with `downsample` 2 (as
+is and in bf16) and 4; with a CUDA GPU also on it (`device: cuda`, transfers included, as is
+and in bf16), with its stages as `cuda_<stage>`. Without one it says why and measures no
+CUDA figure.
 """
 import argparse
 import json
@@ -20,6 +25,7 @@ import numpy as np
 from .cli import console_main, positive_int
 from .evaluate import opencv_sgbm
 from ..evaluation.datasets import list_frames, load_frame
+from ..stereo import gpu
 from ..stereo.cnn import bf16_native
 from ..stereo.cost import cost_volume
 from ..stereo.images import gray_pair
@@ -84,22 +90,35 @@ def main(argv=None):
     seconds = volume_stage_seconds(left, right, nd, args.repeat)
     pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
     print(f"pipeline: the defaults; bf16 'auto' would be {bf16_native()} here")
+    variants = {'pipeline': {}, 'pipeline_bf16': {'bf16': True},
+                'pipeline_downsample2': {'downsample': 2},
+                'pipeline_downsample2_bf16': {'downsample': 2, 'bf16': True},
+                'pipeline_downsample4': {'downsample': 4}}
+    try:
+        gpu.check_device('cuda')
+        variants.update(cuda_pipeline={'device': 'cuda'},
+                        cuda_pipeline_bf16={'device': 'cuda', 'bf16': True})
+    except ValueError as err:
+        print(f'CUDA stages not measured: {err}')
     breakdown = {}
-    for suffix, bf16 in (('', pipeline.config.bf16), ('_bf16', True)):
-        pipe = pipeline.with_config(pipeline.config.replace(bf16=bf16))
-        seconds['pipeline' + suffix], breakdown['pipeline' + suffix] = median_pipeline(
-            pipe, left, right, args.repeat)
-        for stage in ('cnn', 'confidence', 'refine'):
-            seconds[stage + suffix] = breakdown['pipeline' + suffix][stage]
+    for name, changes in variants.items():
+        pipe = pipeline.with_config(pipeline.config.replace(**changes))
+        seconds[name], breakdown[name] = median_pipeline(pipe, left, right, args.repeat)
+        if name == 'cuda_pipeline':  # every CUDA stage: upload, cnn, ..., download
+            seconds.update({f'cuda_{k}': v for k, v in breakdown[name].items()})
+        elif name in ('pipeline', 'pipeline_bf16'):
+            for stage in ('cnn', 'confidence', 'refine'):
+                seconds[stage + name[len('pipeline'):]] = breakdown[name][stage]
     peer = seconds['opencv_sgbm_hh']
     ratios = {name: s / peer for name, s in seconds.items() if name != 'opencv_sgbm_hh'}
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    print(f'{"stage":<16}{"seconds":>9}{"ours/opencv":>13}')
+    print(f'{"stage":<24}{"seconds":>9}{"ours/opencv":>13}')
     for name, s in seconds.items():
-        print(f'{name:<16}{s:9.3f}{ratios.get(name, 1.0):13.2f}')
+        print(f'{name:<24}{s:9.3f}{ratios.get(name, 1.0):13.2f}')
     print(f'peak RSS {peak:.0f} MB')
     for name, stage_seconds in breakdown.items():
-        print(f'{name} = default Census+GCP+SGM end to end; median of its stages:',
+        print(f'{name} = default Census+GCP+SGM end to end, {variants[name] or "as is"}; '
+              'median of its stages:',
               ', '.join(f'{k} {v:.3f} s' for k, v in stage_seconds.items()))
     if args.json:
         args.json.write_text(

@@ -4,7 +4,10 @@ gcp-stereo-load: feed the node a camera-rate stream and report whether it keeps 
 Starts `gcp_stereo_node` as its own process in a private ROS graph, publishes one real pair
 back to back (left, then right) at `--rate` Hz for `--seconds`, and reports pairs sent and
 processed (the rest were dropped as stale), latency from publishing to receiving the
-disparity (median, max), and the node's RSS over the run (it should stay flat).
+disparity (median, max), the node's RSS over the run (it should stay flat) and its CPU
+time: the whole process, and its executor thread, which takes the images (% of one core).
+`--stamps repeat` sends every pair with one stamp, as a one-frame bag played with --loop
+does (no latency then: the stamps do not tell the pairs apart).
 
 With --steps it walks the node through image sizes and disparity ranges instead: a step
 WxH:D sets max_disparity to D, publishes the pair resized to WxH once and waits for its
@@ -18,6 +21,7 @@ kept arrays, as a stream of such pairs needs it, against the estimate.
 """
 import argparse
 import json
+import os
 from pathlib import Path
 import re
 import statistics
@@ -49,6 +53,13 @@ def rss_mb(pid, key='VmRSS'):
     return float('nan')
 
 
+def cpu_seconds(pid, tid=None):
+    """Return the user + system CPU seconds of process `pid` (of its thread `tid` if given)."""
+    path = f'/proc/{pid}/task/{tid}/stat' if tid else f'/proc/{pid}/stat'
+    fields = Path(path).read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
 def node_param(text):
     """Argparse type: `NAME:=VALUE` -> (NAME, VALUE)."""
     name, sep, value = text.partition(':=')
@@ -72,6 +83,9 @@ def main(argv=None):
     ap.add_argument('--frame', help='frame name (default: the first)')
     ap.add_argument('--rate', type=positive, default=30.0)
     ap.add_argument('--seconds', type=positive, default=60.0)
+    ap.add_argument('--stamps', choices=('fresh', 'repeat'), default='fresh',
+                    help='a new stamp for every pair (default), or one stamp for all, as a '
+                         'looped one-frame bag')
     ap.add_argument('-p', '--param', action='append', default=[], type=node_param,
                     metavar='NAME:=VALUE',
                     help='node parameter, as with --ros-args -p; repeatable')
@@ -94,7 +108,7 @@ def main(argv=None):
     with peer_graph('gcp_stereo_load', params) as (peer, node):
         report = _measure(args, frame, peer, node)
     for key, value in report.items():
-        print(f'{key:<18} {value}')
+        print(f'{key:<21} {value}')
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
 
@@ -111,13 +125,14 @@ def _measure(args, frame, peer, node):
     for image in (frame.left, frame.right):
         fields = array_to_image_fields(image, 'rgb8' if image.ndim == 3 else 'mono8')
         msgs.append(Image(**{**fields, 'data': fields['data'].tobytes()}))
-    sent, latency = {}, []
+    sent, latency, outputs = {}, [], []
     lock = threading.Lock()
 
     def on_disparity(msg):
         stamp = stamp_ns(msg.header)
         with lock:
-            if stamp in sent:
+            outputs.append(stamp)
+            if stamp in sent and args.stamps == 'fresh':
                 latency.append(time.monotonic() - sent[stamp])
 
     peer.create_subscription(DisparityImage, 'disparity', on_disparity, 10)
@@ -132,32 +147,41 @@ def _measure(args, frame, peer, node):
 
     # Warm up (subscription matching, Numba and torch first calls) before measuring.
     deadline = time.monotonic() + 120
-    while not latency and time.monotonic() < deadline and node.poll() is None:
+    while not outputs and time.monotonic() < deadline and node.poll() is None:
         publish(time.time_ns())
         time.sleep(1.0)
     if node.poll() is not None:
         raise ChildProcessError(f'the node exited with status {node.returncode}')
-    if not latency:
+    if not outputs:
         raise TimeoutError('the node produced no disparity within 120 s')
+    time.sleep(3.0)  # the warm-up pairs still in flight
     with lock:
         sent.clear()
         latency.clear()
+        outputs.clear()
     rss = [rss_mb(node.pid)]
+    cpu = (cpu_seconds(node.pid), cpu_seconds(node.pid, node.pid))
     start = time.monotonic()
+    repeated = time.time_ns()
     n = 0
     while time.monotonic() - start < args.seconds:
-        publish(time.time_ns())
+        publish(time.time_ns() if args.stamps == 'fresh' else repeated)
         n += 1
         if n % max(1, int(args.rate * 10)) == 0:
             rss.append(rss_mb(node.pid))
         time.sleep(max(0.0, start + n / args.rate - time.monotonic()))
+    cpu = [100 * (now - then) / (time.monotonic() - start)
+           for now, then in zip((cpu_seconds(node.pid), cpu_seconds(node.pid, node.pid)), cpu)]
     time.sleep(3.0)  # let the last frame through
     rss.append(rss_mb(node.pid))
     return {
         'frame': frame.name, 'size': list(frame.left.shape[:2][::-1]), 'rate_hz': args.rate,
-        'seconds': args.seconds, 'pairs_sent': n, 'pairs_processed': len(latency),
-        'pairs_dropped': n - len(latency), 'latency_median_s': statistics.median(latency),
-        'latency_max_s': max(latency), 'rss_mb': [round(r, 1) for r in rss],
+        'seconds': args.seconds, 'stamps': args.stamps, 'pairs_sent': n,
+        'pairs_processed': len(outputs), 'pairs_dropped': n - len(outputs),
+        'latency_median_s': statistics.median(latency) if latency else None,
+        'latency_max_s': max(latency) if latency else None,
+        'rss_mb': [round(r, 1) for r in rss], 'node_cpu_percent': round(cpu[0], 1),
+        'executor_cpu_percent': round(cpu[1], 1),
     }
 
 

@@ -1,0 +1,112 @@
+"""
+The node's /diagnostics: one diagnostic_msgs/DiagnosticArray a second.
+
+Published as diagnostic_updater does (it has no Python package on PyPI): one status named
+'<node name>: stereo', its values as key/value strings, on the absolute topic
+/diagnostics, once a second of steady time (so also under use_sim_time without a clock).
+"""
+from collections import deque
+import os
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
+
+NO_PAIR_SECONDS = 5.0  # images arriving this long without a pair -> WARN
+
+
+class Diagnostics:
+    """
+    Publish the health of `node` (a GcpStereoNode) on /diagnostics once a second.
+
+    Values: images taken per second per side, pairs processed per second, latency from the
+    images' stamp to publishing (mean and max over the last second), pairs dropped as stale,
+    images dropped unmatched, errors, device and weights. Level WARN while crossed parameter
+    values wait (P1 > P2, c_low > c_hi), when images arrive but no pair has synced for
+    NO_PAIR_SECONDS (the message says which topic is missing and why) or when pairs were
+    skipped in the last second. (Weights that cannot be loaded stop the node at start-up and
+    are refused when set.)
+    """
+
+    def __init__(self, node):
+        self._node = node
+        self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 1)
+        self._started = time.monotonic()
+        self._samples = deque()  # (time, images left, images right, processed, errors)
+        node.create_timer(1.0, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def publish(self):
+        node = self._node
+        msg = DiagnosticArray(status=[self.status()])
+        msg.header.stamp = node.get_clock().now().to_msg()
+        self._pub.publish(msg)
+
+    def status(self):
+        """Return the DiagnosticStatus of the last second (and of NO_PAIR_SECONDS for WARN)."""
+        node, inp = self._node, self._node.input
+        now = time.monotonic()
+        sample = (now, inp.received['left'], inp.received['right'], node.processed, node.errors)
+        self._samples.append(sample)
+        while len(self._samples) > 2 and now - self._samples[1][0] >= NO_PAIR_SECONDS:
+            self._samples.popleft()
+        last = self._samples[-2] if len(self._samples) > 1 else (self._started, 0, 0, 0, 0)
+        seconds = max(now - last[0], 1e-9)
+        rates = [(a - b) / seconds for a, b in zip(sample[1:4], last[1:4])]
+        latency = node.take_latencies()
+        config = node.params.pipeline.config
+        sync = inp.sync
+        values = {
+            'left images/s': f'{rates[0]:.1f}', 'right images/s': f'{rates[1]:.1f}',
+            'pairs processed/s': f'{rates[2]:.2f}',
+            'latency s (stamp to publish), mean': (
+                f'{sum(latency) / len(latency):.3f}' if latency else ''),
+            'latency s (stamp to publish), max': f'{max(latency):.3f}' if latency else '',
+            'pairs processed': str(node.processed), 'pairs dropped stale': str(node.stale),
+            'images dropped unmatched, left': str(sync.dropped_left),
+            'images dropped unmatched, right': str(sync.dropped_right),
+            'errors': str(node.errors), 'device': config.device,
+            'weights': config.weights or 'shipped with the package',
+            **{f'{side} topic': topic for side, topic in inp.topics().items()},
+        }
+        level, message = DiagnosticStatus.OK, 'processing' if rates[2] else 'waiting for images'
+        if node.params.pending:
+            level = DiagnosticStatus.WARN
+            message = ('; '.join(node.params.pending)
+                       + ': parameters waiting, the last consistent ones are in use')
+        elif (reason := self._no_pair(now)) is not None:
+            level, message = DiagnosticStatus.WARN, reason
+        elif sample[4] > last[4]:
+            level = DiagnosticStatus.WARN
+            message = f'{sample[4] - last[4]} pair(s) skipped: {node.last_error}'
+        return DiagnosticStatus(
+            level=level, name=f'{node.get_name()}: stereo', message=message, hardware_id='',
+            values=[KeyValue(key=k, value=v) for k, v in values.items()])
+
+    def _no_pair(self, now):
+        """Say why no pair synced for NO_PAIR_SECONDS while images arrive; None otherwise."""
+        inp = self._node.input
+        first, sample = self._samples[0], self._samples[-1]
+        window = now - first[0]
+        paired = now - (inp.paired_at or self._started)
+        counts = {'left': sample[1] - first[1], 'right': sample[2] - first[2]}
+        if paired < NO_PAIR_SECONDS or window < NO_PAIR_SECONDS - 0.5 or not any(counts.values()):
+            return None
+        topics = inp.topics()
+        head = f'no stereo pair for {paired:.0f} s: '
+        for side, other in (('left', 'right'), ('right', 'left')):
+            if not counts[side]:
+                hint = ('' if os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE') else
+                        "; large best-effort images need this package's Fast DDS profile "
+                        '(FASTRTPS_DEFAULT_PROFILES_FILE=.../config/fastdds.xml) in every '
+                        'process')
+                return (f'{head}no image on {topics[side]} in {window:.0f} s while '
+                        f'{topics[other]} gets {counts[other] / window:.1f}/s: check that it '
+                        f'is published and remapped to this topic{hint}')
+        left, right = inp.last_stamp['left'], inp.last_stamp['right']
+        apart = f'{(left - right) / 1e9:+.3f} s apart'
+        sync = inp.sync
+        fix = (f'more than approximate_sync_tolerance_seconds ({sync.tolerance_ns / 1e9:g} s)'
+               if sync.tolerance_ns else 'set approximate_sync true with '
+               'approximate_sync_tolerance_seconds above that, or fix the stamps')
+        return (f'{head}{topics["left"]} and {topics["right"]} both arrive but their stamps '
+                f'never match (newest: left {left} ns, right {right} ns, {apart}); {fix}')

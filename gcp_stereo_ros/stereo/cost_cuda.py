@@ -1,0 +1,112 @@
+"""
+CUDA twins of cost.py's volumes: the same Census and SAD cells, on tensors in GPU memory.
+
+One thread per pixel, looping over d as the CPU kernels do. Census costs are integers and
+equal the CPU's exactly; SAD sums each window directly, in another order than the CPU's
+sliding sums, so it agrees within float32 rounding.
+"""
+from numba import cuda, njit
+import numpy as np
+import torch
+
+from . import gpu
+from .cost import check_max_disp, max_cost, volume_type
+
+
+@cuda.jit
+def _census_transform(gray, rad, bits):
+    """Write the Census bit strings of `gray` (H, W) into `bits` (2, H, W), as cost.py does."""
+    h, w = gray.shape
+    i = cuda.grid(1)
+    if i >= h * w:
+        return
+    y, x = i // w, i % w
+    centre = gray[y, x]
+    lo = np.uint64(0)
+    hi = np.uint64(0)
+    k = 0
+    for dy in range(-rad, rad + 1):
+        yy = min(max(y + dy, 0), h - 1)  # the edge pixel repeated, as np.pad(mode='edge')
+        for dx in range(-rad, rad + 1):
+            if dy == 0 and dx == 0:
+                continue
+            xx = min(max(x + dx, 0), w - 1)
+            if gray[yy, xx] < centre:
+                if k < 64:
+                    lo |= np.uint64(1) << np.uint64(k)
+                else:
+                    hi |= np.uint64(1) << np.uint64(k - 64)
+            k += 1
+    bits[0, y, x] = lo
+    bits[1, y, x] = hi
+
+
+@cuda.jit
+def _census_cost(left, right, rad, scale, invalid, out):
+    """Write scale * Hamming(left bits at x, right bits at x - d) into each valid cell."""
+    h, w, nd = out.shape
+    i = cuda.grid(1)
+    if i >= h * w:
+        return
+    y, x = i // w, i % w
+    valid = _valid(h, w, nd, rad, y, x)
+    for d in range(valid):
+        out[y, x, d] = (cuda.popc(left[0, y, x] ^ right[0, y, x - d])
+                        + cuda.popc(left[1, y, x] ^ right[1, y, x - d])) * scale
+    for d in range(valid, nd):
+        out[y, x, d] = invalid
+
+
+@cuda.jit
+def _sad_cost(left, right, rad, scale, invalid, out):
+    """Write min(scale * mean |left - right shifted by d| over the window, invalid)."""
+    h, w, nd = out.shape
+    i = cuda.grid(1)
+    if i >= h * w:
+        return
+    y, x = i // w, i % w
+    valid = _valid(h, w, nd, rad, y, x)
+    area = np.float32((2 * rad + 1) ** 2)
+    for d in range(valid):
+        s = np.float32(0.0)
+        for yy in range(y - rad, y + rad + 1):
+            for xx in range(x - rad, x + rad + 1):
+                s += abs(left[yy, xx] - right[yy, xx - d])
+        out[y, x, d] = min(s / area * scale, invalid)
+    for d in range(valid, nd):
+        out[y, x, d] = invalid
+
+
+@njit(inline='always')  # kernels call it too (it compiles for a GPU without one)
+def _valid(h, w, nd, rad, y, x):
+    """Return how many d from 0 are valid at (x, y): both windows inside the images."""
+    if rad <= y < h - rad and rad <= x < w - rad:
+        return min(nd, x - rad + 1)
+    return 0
+
+
+def cost_volume(images, max_disp, cost='census', window=9, out=None, scale=1, dtype=np.float32):
+    """
+    Return the cost volume (H, W, max_disp) of a pair on the GPU, as `cost.cost_volume`.
+
+    `images`: float32 tensor (2, H, W) on the device, left and right: the gray images for
+    Census, each standardized (`images.standardize`) for SAD. `out`: a contiguous tensor of
+    the volume's shape and type to write into, or None. Returns a tensor on the device.
+    """
+    dtype = volume_type(cost, window, scale, dtype)
+    _, h, w = images.shape
+    check_max_disp(max_disp, w)
+    shape = (h, w, int(max_disp))
+    if out is None:
+        out = torch.empty(shape, dtype=gpu.VOLUME_TYPES[dtype], device=images.device)
+    invalid = dtype.type(max_cost(cost, window) * scale)
+    rad = window // 2
+    if cost == 'census':
+        bits = torch.empty((2, 2, h, w), dtype=torch.uint64, device=images.device)
+        for k in range(2):
+            gpu.launch(_census_transform, h * w, images[k], rad, bits[k])
+        gpu.launch(_census_cost, h * w, bits[0], bits[1], rad, int(scale), invalid, out)
+    else:
+        gpu.launch(_sad_cost, h * w, images[0], images[1], rad, np.float32(scale),
+                   invalid, out)
+    return out

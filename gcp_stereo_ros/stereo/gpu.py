@@ -1,0 +1,83 @@
+"""
+Device arrays and kernel launches of the CUDA pipeline (StereoConfig.device 'cuda[:N]').
+
+Every array on the GPU is a torch tensor (torch's caching allocator serves the CNN and the
+volumes alike); the numba-cuda kernels get zero-copy views of them (`view`) and run on the
+default stream, which torch uses too, so the stages follow each other without a
+synchronization. Under Numba's CUDA simulator (NUMBA_ENABLE_CUDASIM=1 in the environment
+before numba.cuda is first imported; the tests use it) the same kernels run in Python
+threads on the CPU, on CPU tensors: slow, for small crops only.
+"""
+from contextlib import contextmanager
+
+import numba
+from numba import cuda
+import numpy as np
+import torch
+
+SIMULATED = bool(numba.config.ENABLE_CUDASIM)
+THREADS = 128  # threads per block of every launch
+# numpy type -> torch type of the volumes (cost.volume_type)
+VOLUME_TYPES = {np.dtype(np.float32): torch.float32, np.dtype(np.uint16): torch.uint16}
+
+
+def index(device):
+    """Return N of 'cuda:N' (0 for 'cuda')."""
+    return int(device.partition(':')[2] or 0)
+
+
+def check_device(device):
+    """Raise ValueError unless numba-cuda and torch can both use the GPU `device` names."""
+    n = index(device)
+    if SIMULATED:
+        if n != 0:
+            raise ValueError(f"device {device!r}: the CUDA simulator has one device, 'cuda:0'")
+        return
+    if not cuda.is_available():
+        reason = ' '.join(str(cuda.cuda_error() or 'no device').split())
+        raise ValueError(f'device {device!r}: numba-cuda finds no usable CUDA GPU ({reason}); '
+                         "use device 'cpu'")
+    if not torch.cuda.is_available():
+        raise ValueError(f'device {device!r}: torch {torch.__version__} cannot use the GPU '
+                         '(a CPU build, or a CUDA build too new for the driver); '
+                         "install a CUDA build of torch or use device 'cpu'")
+    if n >= torch.cuda.device_count():
+        raise ValueError(f'device {device!r}: there are {torch.cuda.device_count()} CUDA GPUs')
+
+
+def torch_device(device):
+    """Return the torch device of the CUDA pipeline on `device` (the CPU when simulated)."""
+    return torch.device('cpu') if SIMULATED else torch.device('cuda', index(device))
+
+
+@contextmanager
+def current(device):
+    """Make `device` the current GPU of numba-cuda and torch for the duration."""
+    if SIMULATED:
+        yield
+        return
+    with cuda.gpus[index(device)], torch.cuda.device(index(device)):
+        yield
+
+
+def numpy_type(volume):
+    """Return the numpy dtype of a volume tensor."""
+    return next(k for k, v in VOLUME_TYPES.items() if v == volume.dtype)
+
+
+def view(tensor):
+    """Return what a kernel takes for `tensor`: a view, no copy."""
+    # No synchronization: torch and the kernels share the default stream, which orders them.
+    return tensor.numpy() if SIMULATED else cuda.as_cuda_array(tensor, sync=False)
+
+
+def launch(kernel, n, *args):
+    """Run `kernel` on at least `n` threads (a 1-D grid); tensors among `args` as views."""
+    args = [view(a) if isinstance(a, torch.Tensor) else a for a in args]
+    kernel[max(1, -(-n // THREADS)), THREADS](*args)
+
+
+def synchronize():
+    """Wait for the GPU's work so far (for stage timings)."""
+    if not SIMULATED:
+        cuda.synchronize()

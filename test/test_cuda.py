@@ -1,0 +1,80 @@
+"""
+The CUDA pipeline: its kernels against the CPU, simulated, on a GPU if any, compiled for one.
+
+The comparisons live in cuda_checks.py and run in a process of their own: Numba's CUDA
+simulator is chosen by NUMBA_ENABLE_CUDASIM before numba.cuda is first imported and stays
+for the life of the process, so it must not leak into (or depend on) this one.
+"""
+import os
+from pathlib import Path
+import subprocess
+import sys
+
+from gcp_stereo_ros.stereo import gpu
+from gcp_stereo_ros.stereo.pipeline import StereoConfig, StereoPipeline
+from numba import cuda, typeof
+import numpy as np
+import pytest
+import torch
+
+HERE = Path(__file__).resolve().parent
+
+
+def run_checks(simulate):
+    env = {**os.environ, 'NUMBA_ENABLE_CUDASIM': '1' if simulate else '0'}
+    run = subprocess.run([sys.executable, '-m', 'pytest', '-q', '-p', 'no:cacheprovider',
+                          str(HERE / 'cuda_checks.py')],
+                         env=env, cwd=HERE.parent, capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0 and ' passed' in run.stdout and 'skipped' not in run.stdout, (
+        run.stdout[-6000:] + run.stderr[-3000:])
+
+
+def test_cuda_kernels_equal_the_cpu_under_the_simulator():
+    run_checks(simulate=True)
+
+
+def test_cuda_kernels_equal_the_cpu_on_a_gpu():
+    if gpu.SIMULATED:
+        pytest.skip('this process runs the CUDA simulator (NUMBA_ENABLE_CUDASIM=1)')
+    try:
+        gpu.check_device('cuda')
+    except ValueError as err:
+        pytest.skip(f'no CUDA GPU here, the kernels ran under the simulator only: {err}')
+    run_checks(simulate=False)
+
+
+def test_cuda_kernels_compile_for_a_gpu(data_dir, monkeypatch):
+    """
+    Compile each kernel as the pipeline launches it, to PTX for compute capability 7.5.
+
+    That is numba-cuda's typing and NVVM's compilation of a real GPU run, which the
+    simulator (plain Python) skips; no GPU is needed. The arguments are those of simulated
+    runs of every volume type and option.
+    """
+    if gpu.SIMULATED:
+        pytest.skip('this process runs the CUDA simulator (NUMBA_ENABLE_CUDASIM=1)')
+    try:
+        cuda.compile_ptx(lambda a: None, (typeof(np.zeros(1)),), cc=(7, 5))
+    except Exception as err:  # any failure to find or run NVVM/NVRTC says the same
+        pytest.skip(f'cannot compile for a GPU here (NVVM/NVRTC from nvidia-nvvm and '
+                    f'nvidia-cuda-nvrtc): {err}')
+    compiled = {}
+
+    def compile_launch(kernel, n, *args):
+        types = tuple(typeof(gpu.view(a) if isinstance(a, torch.Tensor) else a) for a in args)
+        key = (kernel.py_func.__name__, types)
+        if key not in compiled:
+            compiled[key] = cuda.compile_ptx(kernel.py_func, types, cc=(7, 5))[0]
+
+    monkeypatch.setattr(gpu, 'SIMULATED', True)  # CPU tensors and no device checks
+    monkeypatch.setattr(gpu, 'launch', compile_launch)
+    rng = np.random.default_rng(0)
+    left, right = rng.integers(0, 255, (2, 12, 20)).astype(np.float32)
+    for config in (StereoConfig(max_disp=8, gcp_lr_check=True, subpixel=True, lr_check=True),
+                   StereoConfig(max_disp=8, c_low=1.2345),  # float32 volumes
+                   StereoConfig.for_cost('sad', max_disp=8, use_gcp=False)):
+        StereoPipeline(config.replace(device='cuda'))(left, right)
+    names = {name for name, _ in compiled}
+    assert names == {'_census_transform', '_census_cost', '_sad_cost', '_select_refine',
+                     '_path', '_wta'}
+    assert len(compiled) == 10 and all('.entry' in ptx for ptx in compiled.values())
