@@ -48,9 +48,8 @@ class LiveParameters:
     A request is validated whole, by building the pipeline it asks for (a missing weights
     file is refused here, with its path), and refused with the reason if any value is
     invalid. A theta above the CNN's highest confidence is warned about, at start-up and
-    when set. A
-    whole number set for a decimal parameter is taken as that decimal. No parameter changes
-    another. Values that cross within a cost (P1 > P2, c_low > c_hi), as when
+    when set. A whole number set for a decimal parameter is taken as that decimal. No
+    parameter changes another. Values that cross within a cost (P1 > P2, c_low > c_hi), as when
     `ros2 param load` sets P1 before P2, are accepted and wait, with a warning: the pipeline
     keeps the last consistent values (`pending` says why) until a later value uncrosses
     them. `on_change(names)` is called with the names whose values changed.

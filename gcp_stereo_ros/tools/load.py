@@ -255,6 +255,7 @@ def _walk_node(steps, frame, values, peer, pid):
             fields = array_to_image_fields(image, 'rgb8' if image.ndim == 3 else 'mono8')
             msg = Image(**{**fields, 'data': fields['data'].tobytes()})
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+            msg.header.frame_id = 'left'
             pub.publish(msg)
         end = time.monotonic() + ANSWER_SECONDS
         while time.monotonic() < end:
