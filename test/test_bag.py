@@ -8,6 +8,7 @@ import io
 import os
 from pathlib import Path
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -227,11 +228,10 @@ def bad_bags(tmp_path):
     write_bag(bags['wrong image type'], {
         '/left/image_rect': (bag.STRING, [(1, string_msg('left'))]),
         '/right/image_rect': (bag.STRING, [(1, string_msg('right'))])})
-    # The first pair is processed and written; the second fails: no half-written output either.
-    bags['bad second pair'] = tmp_path / 'bad_second'
-    write_bag(bags['bad second pair'], {
+    bags['only bad pairs'] = tmp_path / 'only_bad'
+    write_bag(bags['only bad pairs'], {
         f'/{side}/image_rect': (
-            bag.IMAGE, [(1, image_msg(1, 'rgb8')), (2, image_msg(2, 'yuv422'))])
+            bag.IMAGE, [(1, image_msg(1, 'yuv422')), (2, image_msg(2, 'yuv422'))])
         for side in ('left', 'right')})
     return bags
 
@@ -242,7 +242,7 @@ REASONS = {
     'no image topics': 'no stereo pair of image topics (topics: /chatter (String))',
     'wrong image type': 'no stereo pair of image topics (topics: /left/image_rect (String), '
                         '/right/image_rect (String))',
-    'bad second pair': "unsupported encoding 'yuv422'",
+    'only bad pairs': 'none of its 2 pairs could be processed',
 }
 
 
@@ -262,6 +262,95 @@ def test_bad_input_bags_are_refused_without_output(tmp_path, params_file, capsys
     proc = cli('run', '--in', bags['truncated mcap'], '--out', tmp_path / 'cli_out')
     assert proc.returncode == 1 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert 'Traceback' not in proc.stderr and not (tmp_path / 'cli_out').exists()
+
+
+def crop_msg(frame, side, stamp, encoding='rgb8', rows=120):
+    image = getattr(frame, side)[200:200 + rows, 300:460]
+    fields = array_to_image_fields(image, 'rgb8')
+    return TYPESTORE.types[bag.IMAGE](header=bag._header(stamp, f'{side}_camera'),
+                                      **{**fields, 'encoding': encoding})
+
+
+def test_run_skips_a_bad_pair_as_the_node_does(tmp_path, params_file, capsys):
+    frame = load_frame('motorcycle', 'motorcycle')
+    path = tmp_path / 'in'
+    write_bag(path, {f'/{side}/image_rect': (bag.IMAGE, [
+        (1, crop_msg(frame, side, 1)),
+        (2, crop_msg(frame, side, 2, 'yuv422' if side == 'left' else 'rgb8')),
+        (3, crop_msg(frame, side, 3, rows=120 if side == 'left' else 100)),
+        (4, crop_msg(frame, side, 4))]) for side in ('left', 'right')})
+    assert bag.main(['run', '--in', str(path), '--out', str(tmp_path / 'out'),
+                     '--params', str(params_file)]) == 0
+    out = capsys.readouterr()
+    assert [line for line in out.err.splitlines() if line.startswith(bag.PROG)] == [
+        'gcp-stereo-bag: skipping pair at stamp 2 ns: /left/image_rect: unsupported '
+        "encoding 'yuv422'; expected one of mono8, mono16, 32FC1, rgb8, bgr8, rgba8, bgra8",
+        'gcp-stereo-bag: skipping pair at stamp 3 ns: left image is 160x120 but right '
+        'image is 160x100 (width x height); a rectified pair has one size']
+    assert ' processed (confidence, disparity, gcp_mask written), 2 skipped;' in out.out
+    outputs, _ = read_bag(tmp_path / 'out')
+    assert [stamp_of(m) for _, m in outputs['/disparity']] == [1, 4]
+    too_high = tmp_path / 'theta.yaml'  # the shipped weights' confidence is at most 0.842
+    too_high.write_text(yaml.safe_dump(
+        {'/**': {'ros__parameters': {**PARAMS, 'census.theta': 0.9}}}))
+    assert bag.main(['run', '--in', str(path), '--out', str(tmp_path / 'out'), '--force',
+                     '--params', str(too_high)]) == 0
+    assert ('gcp-stereo-bag: warning: theta 0.9 selects no GCP: the CNN confidence is at most'
+            in capsys.readouterr().err)
+
+
+def slow_bag(path, pairs):
+    """Write a bag of `pairs` Motorcycle frames: seconds of work for `run`."""
+    frame = load_frame('motorcycle', 'motorcycle')
+    with Writer(path, version=9, storage_plugin=bag.StoragePlugin.MCAP) as writer:
+        conns = {name: writer.add_connection(f'/{name}', msgtype, typestore=TYPESTORE)
+                 for name, (msgtype, _) in bag.input_topics().items()}
+        for i in range(pairs):
+            stamp = (i + 1) * 100_000_000
+            for name, msg in bag.frame_messages(frame, stamp).items():
+                if name in conns:
+                    writer.write(conns[name], stamp,
+                                 TYPESTORE.serialize_cdr(msg, conns[name].msgtype))
+
+
+def test_staging_is_removed_on_sigterm_and_after_sigkill(tmp_path):
+    slow_bag(tmp_path / 'in', 20)
+    out = tmp_path / 'out'
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        proc = subprocess.Popen([sys.executable, '-m', 'gcp_stereo_ros.tools.bag', 'run',
+                                 '--in', str(tmp_path / 'in'), '--out', str(out)],
+                                cwd=REPO, env=os.environ, stderr=subprocess.PIPE, text=True)
+        staging = tmp_path / f'.out.partial-{proc.pid}'
+        end = time.monotonic() + 60
+        while not staging.exists():
+            assert time.monotonic() < end and proc.poll() is None, 'no staging folder'
+            time.sleep(0.05)
+        time.sleep(1.0)  # in the middle of the run
+        proc.send_signal(sig)
+        err = proc.communicate(timeout=30)[1]
+        if sig == signal.SIGTERM:
+            assert proc.returncode == 128 + signal.SIGTERM, err
+            assert err.strip().splitlines()[-1] == (
+                f'gcp-stereo-bag: terminated; {out} not written')
+            assert not staging.exists()
+        else:
+            assert staging.exists()  # nothing runs on SIGKILL ...
+    assert not out.exists()
+    assert bag.main(['make', '--dataset', 'motorcycle', '--out', str(out)]) == 0
+    assert not staging.exists()  # ... the next run on the same output removes it
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['in', 'out']
+
+
+def test_play_warns_of_messages_larger_than_the_shared_memory_segment(tmp_path):
+    gray = load_frame('motorcycle', 'motorcycle').left.mean(axis=2).astype(np.uint8)
+    big = np.tile(gray, (13, 9))[:6000, :6000]  # 36 MB as mono8
+    fields = array_to_image_fields(big, 'mono8')
+    msg = TYPESTORE.types[bag.IMAGE](header=bag._header(1, 'left_camera'), **fields)
+    write_bag(tmp_path / 'big', {'/left/image_rect': (bag.IMAGE, [(1, msg)])})
+    proc = cli('play', '--in', tmp_path / 'big', '--wait-subscribers', 0)
+    assert proc.returncode == 0, proc.stderr
+    assert ('gcp-stereo-bag play: warning: /left/image_rect has messages of 34.3 MiB, more than '
+            'the 32 MiB Fast DDS shared-memory segment') in proc.stderr
 
 
 def test_existing_output_needs_force(tmp_path, capsys):

@@ -22,7 +22,7 @@ def right(tx=-F * 0.1, cx=58):
 
 
 def test_model_geometry_and_q():
-    model = stereo_model(info(), right(), (H, W, 3))
+    model = stereo_model(info(), right(), (H, W, 3), 64)
     assert (model.fx, model.baseline, model.cx_offset) == (F, pytest.approx(0.1), 2)
     disp = np.array([[np.nan, 2.0, 2.5, 12.0]], np.float32)
     depth = model.depth(disp)
@@ -41,10 +41,13 @@ def test_model_geometry_and_q():
     (info(), right(tx=F * 0.1), 'baseline T .* = -0.1 is not positive'),
     (info(p=(F, 0, np.nan, 0, 0, F, 40, 0, 0, 0, 1, 0)), right(), 'P is not finite'),
     (info(width=640, height=480), right(), 'for 640x480 images, the images are 120x80'),
+    (info(), right(cx=360), 'principal points are -300 px apart .* not within max_disparity 64'),
+    (info(p=(1e300, 0, 60, 0, 0, 1e300, 40, 0, 0, 0, 1, 0)),
+     info(p=(1e300, 0, 60, -1e299, 0, 1e300, 40, 0, 0, 0, 1, 0)), 'does not fit the float32'),
 ])
 def test_model_says_why_there_is_none(left, right_info, reason):
     with pytest.raises(ValueError, match=reason):
-        stereo_model(left, right_info, (H, W))
+        stereo_model(left, right_info, (H, W), 64)
 
 
 def test_rectifier_models_and_refusals():

@@ -112,6 +112,12 @@ def test_weights_errors_name_the_path(tmp_path):
     torch.save({'state_dict': {'w': torch.zeros(3)}, 'meta': {}}, wrong)
     with pytest.raises(ValueError, match=str(wrong)):
         load_net(wrong)
+    diverged = tmp_path / 'diverged.pt'  # right shapes, one NaN: every disparity would be 0
+    state = load_net().state_dict()
+    state['branch.4.weight'][0, 0, 1, 1] = float('nan')
+    torch.save({'state_dict': state, 'meta': {}}, diverged)
+    with pytest.raises(ValueError, match=f'{diverged} holds NaN or infinite weights'):
+        load_net(diverged)
 
 
 def test_shipped_weights_follow_the_split():

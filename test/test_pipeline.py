@@ -1,9 +1,20 @@
-"""The pipeline on real data: error thresholds, configuration checks, GCP refinement."""
+"""
+The pipeline on real data.
+
+Error thresholds, configuration checks, GCP refinement, memory, stopping a run.
+"""
+from pathlib import Path
+import threading
+import time
+
+from gcp_stereo_ros.evaluation.datasets import load_frame
 
 from gcp_stereo_ros.evaluation.metrics import error_rates
+from gcp_stereo_ros.stereo.cancel import CancelFlag, Cancelled
 from gcp_stereo_ros.stereo.gcp import refine, select
 from gcp_stereo_ros.stereo.images import bin_area, upsample
-from gcp_stereo_ros.stereo.pipeline import fixed_point_scale, StereoConfig, StereoPipeline
+from gcp_stereo_ros.stereo.pipeline import (fixed_point_scale, memory_bytes, MIB,
+                                            mmap_large_arrays, StereoConfig, StereoPipeline)
 from gcp_stereo_ros.tools.evaluate import opencv_sgbm
 import numpy as np
 import pytest
@@ -122,6 +133,8 @@ def test_fixed_point_pipeline_matches_float32(motorcycle, monkeypatch):
     ({'window': 4}, 'window'),
     ({'max_disp': 0}, 'max_disp'),
     ({'device': 'tpu'}, 'device'),
+    ({'memory_limit_mb': 0}, 'memory_limit_mb'),
+    ({'memory_limit_mb': 1024.0}, 'memory_limit_mb'),
     ({'cost': 'ncc'}, 'cost'),
     ({'downsample': 3}, 'downsample'),
     ({'downsample': 2.0}, 'downsample'),
@@ -199,3 +212,113 @@ def test_downsample_error_on_motorcycle(motorcycle, downsample, limit):
                                    downsample=downsample)
     bad3 = error_rates(StereoPipeline(config)(left, right).disparity, gt)['bad3']
     assert 13.0 < bad3 < limit
+
+
+def test_memory_limit_refuses_with_what_fits(motorcycle):
+    left, right, _ = motorcycle  # 741x500
+    config = StereoConfig.for_cost('census', use_gcp=False, max_disp=256, memory_limit_mb=150)
+    need = memory_bytes(config, 500, 741)
+    assert 2 * 741 * 500 * 256 * 2 < need < 1.2 * 2 * 741 * 500 * 256 * 2  # two uint16 volumes
+    with pytest.raises(ValueError) as refused:
+        StereoPipeline(config)(left, right)
+    message = str(refused.value)
+    assert message.startswith(f'741x500 at max_disparity 256 needs about {need / MIB:.0f} MB '
+                              '(two 741x500x256 uint16 volumes), over memory_limit_mb 150: '
+                              'lower max_disparity (at most ')
+    assert message.endswith('raise downsample, or raise memory_limit_mb')
+    fits = int(message.split('at most ')[1].split()[0])
+    assert memory_bytes(config.replace(max_disp=fits), 500, 741) <= 150 * MIB
+    assert memory_bytes(config.replace(max_disp=fits + 1), 500, 741) > 150 * MIB
+    assert StereoPipeline(config.replace(max_disp=fits))(left, right).disparity.shape == (500, 741)
+
+
+def rss_mb(key='VmRSS'):
+    for line in Path('/proc/self/status').read_text().splitlines():
+        if line.startswith(key + ':'):
+            return int(line.split()[1]) / 1024
+
+
+def reset_peak_rss():
+    Path('/proc/self/clear_refs').write_text('5')  # VmHWM := VmRSS
+
+
+def test_memory_estimate_bounds_the_measured_peak(motorcycle):
+    """
+    Check memory_bytes against the measured peak RSS of a frame after one of the same size.
+
+    Measured (README, gcp-stereo-load --steps --pipeline): 1 to 9 % above the peak in fp32.
+    """
+    mmap_large_arrays()  # as the node and the bag tool do
+    left, right, _ = motorcycle
+    pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=96))
+    pipe(left[:64, :128], right[:64, :128])  # first calls of everything
+    pipe.release()
+    base = rss_mb()
+    pipe(left, right)
+    reset_peak_rss()
+    pipe(left, right)
+    peak = rss_mb('VmHWM') - base
+    estimate = memory_bytes(pipe.config, *left.shape[:2]) / MIB
+    # Lower bound loose: oneDNN keeps its scratchpad from earlier, larger convolutions.
+    assert 0.5 * estimate < peak <= estimate, (peak, estimate)
+
+
+def test_arrays_are_let_go_not_doubled(motorcycle):
+    """
+    Check that a change of D lets the old volumes go first, and `release` lets all go.
+
+    At 741x500 the volumes take 181 MB at D 128 and 136 MB at D 96 (uint16, two each).
+    """
+    mmap_large_arrays()  # as the node and the bag tool do
+    left, right, _ = motorcycle
+    pipe = StereoPipeline(StereoConfig.for_cost('census', use_gcp=False, max_disp=128))
+    pipe(left, right)
+    before = rss_mb()
+    reset_peak_rss()
+    pipe.with_config(pipe.config.replace(max_disp=96))(left, right)
+    assert rss_mb('VmHWM') - before < 60  # holding both would add 136 MB
+    assert before - rss_mb() > 30  # 181 MB let go, 136 MB taken
+    pipe.release()
+    assert before - rss_mb() > 170
+
+
+def test_a_run_stops_soon_after_its_cancel_flag_is_set(data_dir):
+    """
+    Check that setting the flag stops a run within a CNN layer or a kernel row.
+
+    Aloe at 1282x1110 with the fp32 CNN takes seconds; stopped at 0.3 s and again at 2 s.
+    """
+    frame = load_frame(data_dir, 'middlebury2006/fullsize_opencv-doc/Aloe')
+    pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=64))
+    pipe(frame.left[:64, :128], frame.right[:64, :128])  # first calls of everything
+    for delay in (0.3, 2.0):
+        cancel, outcome = CancelFlag(), []
+
+        def run():
+            try:
+                pipe(frame.left, frame.right, cancel=cancel)
+                outcome.append('finished')
+            except Cancelled:
+                outcome.append(time.monotonic())
+        worker = threading.Thread(target=run)
+        worker.start()
+        time.sleep(delay)
+        cancel.set()
+        stopped = time.monotonic()
+        worker.join(10)
+        assert outcome and outcome[0] != 'finished', outcome
+        assert outcome[0] - stopped < 0.8, outcome[0] - stopped
+
+
+def test_device_is_checked_without_gcps_too():
+    for device in ('cudafoo', 'cuda:x', 'CPU'):
+        with pytest.raises(ValueError, match='device'):
+            StereoConfig(use_gcp=False, device=device).validate()
+    if not torch_cuda():
+        with pytest.raises(ValueError, match="device 'cuda:1': .*no usable CUDA GPU"):
+            StereoPipeline(StereoConfig(use_gcp=False, device='cuda:1'))
+
+
+def torch_cuda():
+    import torch
+    return torch.cuda.is_available()

@@ -339,7 +339,8 @@ def test_a_start_up_value_for_an_unknown_name_stops_the_node(tmp_path):
     params.write_text('/**:\n  ros__parameters:\n    theta: 0.7\n')
     hint = "['theta'] (theta: each cost has its own, e.g. census.theta, sad.theta)"
     for args, says in ((['-p', 'theta:=0.7'], hint), (['--params-file', str(params)], hint),
-                       (['-p', 'censu.P1:=3.0'], "['censu.P1']; known: ")):
+                       (['-p', 'censu.P1:=3.0'],
+                        "['censu.P1'] (did you mean 'census.P1'?); known: ")):
         proc = subprocess.run([sys.executable, '-m', 'gcp_stereo_ros.node', '--ros-args', *args],
                               capture_output=True, text=True, timeout=60)
         assert proc.returncode == 2, proc.stderr

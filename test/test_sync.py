@@ -1,4 +1,5 @@
 """PairSync: exact and approximate stereo pairing, drops, and the unmatched streak."""
+from gcp_stereo_ros.ros.params import make_sync
 from gcp_stereo_ros.ros.sync import PairSync
 import pytest
 
@@ -182,3 +183,17 @@ def test_looped_short_bag_pairs_every_frame_of_every_pass():
                     got.append(pair[0])
     assert got == [0, 100 * MS, 200 * MS] * 4
     assert (sync.dropped_left, sync.dropped_right) == (0, 0)
+
+
+def test_queues_are_bounded_in_bytes_too():
+    sync = PairSync(queue_size=100, max_bytes=250)
+    for i in range(5):
+        assert sync.add('left', i, f'L{i}', 100) is None
+    assert sync.dropped_left == 3  # two 100-byte images fit in 250 bytes
+    assert sync.add('right', 4, 'R4', 100) == (4, 'L4', 'R4')
+    assert sync.add('right', 9, 'big', 1000) is None  # the newest is kept, whatever its size
+    assert sync.add('left', 9, 'L9', 100) == (9, 'L9', 'big')
+
+
+def test_node_queues_hold_a_quarter_of_the_memory_limit():
+    assert make_sync({'queue_size': 1000, 'memory_limit_mb': 3072}).max_bytes == 768 << 20

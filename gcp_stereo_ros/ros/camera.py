@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 # distortion_model -> the numbers of D coefficients OpenCV takes for it
 DISTORTION = {'plumb_bob': (0, 4, 5, 8, 12, 14), 'rational_polynomial': (0, 4, 5, 8, 12, 14),
               'equidistant': (0, 4)}
@@ -76,12 +77,14 @@ def _projection(info, side):
     return p
 
 
-def stereo_model(left_info, right_info, shape):
+def stereo_model(left_info, right_info, shape, max_disp):
     """
     Return the StereoModel of the two CameraInfos for images of `shape` (H, W[, C]).
 
     Raises ValueError saying why there is none: a missing camera_info, no projection P
-    (uncalibrated), a zero or negative baseline, or a size other than the images'.
+    (uncalibrated), a zero or negative baseline, a size other than the images', principal
+    points `max_disp` or more px apart (no searched disparity would be a geometric one), or
+    f or T beyond the float32 fields of stereo_msgs/DisparityImage.
     """
     for side, info in (('left', left_info), ('right', right_info)):
         if info is None:
@@ -94,7 +97,14 @@ def stereo_model(left_info, right_info, shape):
     if not baseline > 0:
         raise ValueError(f'baseline T = -P_right[0,3] / P_right[0,0] = {baseline:g} is not '
                          'positive: the right camera_info P[0,3] must be -fx * baseline')
-    return StereoModel(pl[0, 0], pl[1, 1], pl[0, 2], pl[1, 2], pr[0, 2], baseline)
+    model = StereoModel(pl[0, 0], pl[1, 1], pl[0, 2], pl[1, 2], pr[0, 2], baseline)
+    if not abs(model.cx_offset) < max_disp:
+        raise ValueError(f'the principal points are {model.cx_offset:g} px apart (left cx - '
+                         f'right cx), not within max_disparity {max_disp}')
+    if not max(model.fx, baseline) <= FLOAT32_MAX:
+        raise ValueError(f'f {model.fx:g} or baseline {baseline:g} does not fit the float32 '
+                         'fields of stereo_msgs/DisparityImage')
+    return model
 
 
 class Rectifier:

@@ -24,7 +24,8 @@ class Diagnostics:
     images dropped unmatched, errors, device and weights. Level WARN while crossed parameter
     values wait (P1 > P2, c_low > c_hi), when images arrive but no pair has synced for
     NO_PAIR_SECONDS (the message says which topic is missing and why) or when pairs were
-    skipped in the last second; ERROR when the CNN weights cannot be loaded.
+    skipped in the last second. (Weights that cannot be loaded stop the node at start-up and
+    are refused when set.)
     """
 
     def __init__(self, node):
@@ -68,9 +69,7 @@ class Diagnostics:
             **{f'{side} topic': topic for side, topic in inp.topics().items()},
         }
         level, message = DiagnosticStatus.OK, 'processing' if rates[2] else 'waiting for images'
-        if node.weights_error:
-            level, message = DiagnosticStatus.ERROR, f'CNN weights: {node.weights_error}'
-        elif node.params.pending:
+        if node.params.pending:
             level = DiagnosticStatus.WARN
             message = ('; '.join(node.params.pending)
                        + ': parameters waiting, the last consistent ones are in use')

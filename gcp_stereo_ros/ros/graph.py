@@ -1,6 +1,7 @@
 """
 Starting and stopping the node in a private ROS graph, for the demo and the load run.
 
+Also the Fast DDS shared-memory segment size, which bounds the messages the graph carries.
 rclpy is imported only inside `peer_graph`, after the environment it reads is set.
 """
 from contextlib import contextmanager
@@ -11,8 +12,10 @@ import signal
 import subprocess
 import sys
 import threading
+from xml.etree import ElementTree
 
 SHARE = 'share/gcp_stereo_ros'
+FASTDDS_SHM_DEFAULT = 512 * 1024  # Fast DDS's shared-memory segment without a profile
 
 
 def package_file(relative):
@@ -33,14 +36,37 @@ def private_env(domain_id=None):
     """
     Return os.environ for a graph of our own.
 
-    The graph gets its own DDS domain, loopback discovery only, and the shipped Fast DDS
-    profile (32 MB shared memory) so large images are not dropped.
+    The graph gets loopback discovery only, the shipped Fast DDS profile (32 MiB shared
+    memory) so large images are not dropped, and DDS domain `domain_id`, else the user's
+    ROS_DOMAIN_ID, else a random one.
     """
     env = dict(os.environ)
-    env['ROS_DOMAIN_ID'] = str(domain_id if domain_id is not None else random.randint(1, 101))
+    if domain_id is not None or not env.get('ROS_DOMAIN_ID'):
+        env['ROS_DOMAIN_ID'] = str(domain_id if domain_id is not None
+                                   else random.randint(1, 101))
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(package_file('config/fastdds.xml'))
     return env
+
+
+def shm_segment_bytes(env=None):
+    """
+    Return the Fast DDS shared-memory segment size, in bytes, of processes started in `env`.
+
+    That is the largest SHM `segment_size` in the FASTRTPS_DEFAULT_PROFILES_FILE profile, or
+    Fast DDS's default without one. A message larger than the publisher's segment is lost.
+    """
+    path = (os.environ if env is None else env).get('FASTRTPS_DEFAULT_PROFILES_FILE')
+    try:
+        root = ElementTree.parse(path).getroot() if path else None
+    except (OSError, ElementTree.ParseError):
+        root = None
+    sizes = []
+    for e in root.iter() if root is not None else ():
+        fields = {c.tag.rsplit('}', 1)[-1]: (c.text or '').strip() for c in e}
+        if fields.get('type') == 'SHM' and fields.get('segment_size', '').isdigit():
+            sizes.append(int(fields['segment_size']))
+    return max(sizes, default=FASTDDS_SHM_DEFAULT)
 
 
 def start_node(env, params=None, params_file=None):

@@ -3,8 +3,8 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
 
-from .params import (BY_NAME, check_names, coerce, config_from_params, inconsistencies,
-                     make_sync, PARAMS, RCLPY_PARAMS, uncrossed)
+from .params import (BY_NAME, check_names, coerce, config_from_params, config_warnings,
+                     inconsistencies, make_sync, PARAMS, RCLPY_PARAMS, uncrossed)
 from ..stereo.pipeline import StereoPipeline
 
 
@@ -43,9 +43,12 @@ class LiveParameters:
     """
     Declare the node's parameters and keep `values` and `pipeline` in step with them.
 
-    A start-up value for a name the node does not have is refused (ValueError). A request
-    is validated whole, by building the pipeline it asks for (a missing weights file is
-    refused here, with its path), and refused with the reason if any value is invalid. A
+    A start-up value for a name the node does not have, and start-up values the pipeline
+    cannot be built with (a missing weights file, an absent GPU), are refused (ValueError).
+    A request is validated whole, by building the pipeline it asks for (a missing weights
+    file is refused here, with its path), and refused with the reason if any value is
+    invalid. A theta above the CNN's highest confidence is warned about, at start-up and
+    when set. A
     whole number set for a decimal parameter is taken as that decimal. No parameter changes
     another. Values that cross within a cost (P1 > P2, c_low > c_hi), as when
     `ros2 param load` sets P1 before P2, are accepted and wait, with a warning: the pipeline
@@ -65,6 +68,9 @@ class LiveParameters:
                     if n not in RCLPY_PARAMS and not n.startswith('qos_overrides.'))
         self.values = {p.name: node.get_parameter(p.name).value for p in PARAMS}
         self.pipeline = StereoPipeline(config_from_params(self.values))
+        if self.pipeline.config.use_gcp:
+            self.pipeline.net  # a missing or broken weights file stops the start here
+        self._warn()
         self.pending = []
         self._candidate = None
         node.add_pre_set_parameters_callback(self._decimals)
@@ -110,3 +116,8 @@ class LiveParameters:
         if self.pending:
             logger.warn('; '.join(self.pending) + ': waiting for that, the node keeps its last '
                         f'consistent values: {self.pipeline.config}')
+        self._warn()
+
+    def _warn(self):
+        for text in config_warnings(self.pipeline):
+            self._node.get_logger().warn(text)

@@ -16,10 +16,20 @@ Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
 The node is three parts: `LiveParameters` (declare, validate, apply), `StereoInput`
 (subscriptions and pairing) and a `NewestWorker` thread that processes the newest pair
 and publishes here, so parameter requests are served while a frame is being processed.
+
+Start-up settings that cannot work (invalid values, unknown names, a missing weights file,
+`device: cuda` without a GPU, an unreadable params file) end the process with one line and
+exit code 2. Ctrl-C or SIGTERM stops a frame in progress between two rows of a kernel or
+two CNN layers, so the process exits promptly.
 """
 import array
+import gc
+import math
+import os
+import signal
 import sys
 import time
+import traceback
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -33,12 +43,15 @@ from .camera import Rectifier, stereo_model
 from .diagnostics import Diagnostics
 from .live_params import LiveParameters
 from .messages import output_messages, OUTPUTS
-from .params import INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
+from .params import check_params_files, INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
 from .rosimage import message_to_array
 from .stereo_input import StereoInput
 from .worker import NewestWorker
+from ..stereo.cancel import CancelFlag, Cancelled
+from ..stereo.pipeline import mmap_large_arrays
 
-ERROR_PERIOD = 5.0  # seconds between two logs of the same error
+LOG_PERIOD = 5.0  # seconds between two logs of the same text
+STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
 ON_DEMAND = ('confidence', 'depth', 'points2')  # computed only while subscribed
 
 
@@ -63,11 +76,22 @@ class GcpStereoNode(Node):
         # Every start-up value is declared, so LiveParameters sees (and refuses) unknown names.
         super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True,
                          **kwargs)
-        self.params = LiveParameters(self, on_change=self._on_params)
-        self._worker = NewestWorker(self._process, name='gcp_stereo_worker',
-                                    on_idle=lambda: self.input.wake())
+        self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
+        self.errors = 0
+        self.last_error = ''
+        try:  # raises for start-up values that cannot work (names, ranges, weights, device)
+            self.params = LiveParameters(self, on_change=self._on_params)
+        except Exception:
+            super().destroy_node()
+            raise
+        self._cancel = CancelFlag()
+        self.stopped = False  # set by destroy_node: the worker thread has ended
+        self._worker = NewestWorker(self._process, 'gcp_stereo_worker',
+                                    on_error=self._on_worker_error,
+                                    on_idle=lambda: self.input.wake(),
+                                    on_quiet=lambda: self.params.pipeline.release())
         self.input = StereoInput(self, self.params.values, on_pair=self._on_pair,
-                                 idle=lambda: self._worker.idle)
+                                 idle=lambda: self._worker.idle, log=self._log)
         # As image_pipeline's publishers on Jazzy: reliable, depth 1, QoS overridable.
         qos = QoSOverridingOptions.with_default_policies()
         types = {'disparity': DisparityImage, 'gcp_mask': Image, 'confidence': Image,
@@ -76,22 +100,12 @@ class GcpStereoNode(Node):
                                                   qos_overriding_options=qos)
                       for name in OUTPUTS}
         self._rectifier = Rectifier()
-        self._last_error = {}
         self._warned = set()
         self._latency = []
         self.processed = 0
-        self.errors = 0
-        self.last_error = ''
-        self.weights_error = None
         self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
-        pipeline = self.params.pipeline
-        if pipeline.config.use_gcp:
-            try:
-                self._load_weights(pipeline)
-            except Exception as err:  # keep serving: every pair and /diagnostics say why
-                self._error(f'CNN weights: {err}')
         self.diagnostics = Diagnostics(self)
-        self.get_logger().info(f'ready: {pipeline.config}')
+        self.get_logger().info(f'ready: {self.params.pipeline.config}')
 
     @property
     def stale(self):
@@ -119,27 +133,31 @@ class GcpStereoNode(Node):
     def _on_pair(self, stamp, left_msg, right_msg):
         self._worker.put((stamp, left_msg, right_msg))
 
-    def _error(self, text):
-        """Log an error at most once per ERROR_PERIOD for the same text."""
-        self.errors += 1
-        self.last_error = text
+    def _log(self, severity, text, detail=''):
+        """
+        Log `text` ('error' or 'warn') at most once per LOG_PERIOD, with `detail` appended.
+
+        Repeats of the same text in between are counted and the count is logged with the
+        next one; `detail` (a stamp, say) is not part of what repeats.
+        """
+        if severity == 'error':
+            self.errors += 1
+            self.last_error = text
         now = time.monotonic()
-        if now - self._last_error.get(text, -ERROR_PERIOD) >= ERROR_PERIOD:
-            self._last_error[text] = now
-            self.get_logger().error(text)
+        last = self._last_log.setdefault(text, [-math.inf, 0])
+        if now - last[0] < LOG_PERIOD:
+            last[1] += 1
+            return
+        notes = [detail] if detail else []
+        if last[1]:
+            notes.append(f'{last[1]} more like it in the last {now - last[0]:.0f} s')
+        getattr(self.get_logger(), severity)(text + (f' ({"; ".join(notes)})' if notes else ''))
+        self._last_log[text] = [now, 0]
 
     def _warn_once(self, text):
         if text not in self._warned:
             self._warned.add(text)
             self.get_logger().warn(text)
-
-    def _load_weights(self, pipeline):
-        try:
-            pipeline.net
-        except Exception as err:
-            self.weights_error = str(err)
-            raise
-        self.weights_error = None
 
     def _process(self, stamp, left_msg, right_msg):
         pipeline = self.params.pipeline
@@ -147,24 +165,24 @@ class GcpStereoNode(Node):
         topics = self.input.topics()
         info = dict(self.input.info)
         try:
-            if pipeline.config.use_gcp:
-                self._load_weights(pipeline)
             left, right = (message_to_array(msg, topics[side])
                            for side, msg in (('left', left_msg), ('right', right_msg)))
             if values['rectify']:
                 left, right = (self._rectifier(side, info[side], image, topics[side])
                                for side, image in (('left', left), ('right', right)))
-            result = pipeline(left, right)
-        except Exception as err:  # bad input or weights: say why, keep serving
-            self._error(f'skipping pair {topics["left"]} + {topics["right"]} '
-                        f'at stamp {stamp} ns: {err}')
+            result = pipeline(left, right, cancel=self._cancel)
+        except Cancelled:
+            return  # shutting down
+        except Exception as err:  # bad input or a pair over memory_limit_mb: say why
+            self._log('error', f'skipping pair {topics["left"]} + {topics["right"]}: {err}',
+                      f'stamp {stamp} ns')
             return
         try:
             self._publish(left_msg.header, result, pipeline.config, info, left, topics, values)
-        except Exception:
+        except Exception as err:
             if self.context.ok():
-                raise
-            return  # shutting down (Ctrl-C) while this pair was in flight: nothing to send to
+                self._log('error', f'cannot publish the outputs: {err}', f'stamp {stamp} ns')
+            return  # else shutting down while this pair was in flight: nothing to send to
         self._latency.append((self.get_clock().now().nanoseconds - stamp) / 1e9)
         self.processed += 1
         self._log_progress(result.seconds)
@@ -173,10 +191,12 @@ class GcpStereoNode(Node):
         wanted = {'disparity', 'gcp_mask'} | {
             n for n in ON_DEMAND if self._pubs[n].get_subscription_count() > 0}
         try:
-            model = stereo_model(info['left'], info['right'], left.shape)
+            model = stereo_model(info['left'], info['right'], left.shape, config.max_disp)
         except ValueError as err:
             model = None
-            if wanted & {'depth', 'points2'}:
+            if None not in info.values():  # calibrated, but wrongly: say so while it lasts
+                self._log('warn', f'camera_info ignored (no f, t, depth or points2): {err}')
+            elif wanted & {'depth', 'points2'}:
                 self._warn_once(f'no depth or points2: {err}')
         if not header.frame_id:
             self._warn_once(f'{topics["left"]}: empty frame_id; outputs carry it as they are')
@@ -204,13 +224,34 @@ class GcpStereoNode(Node):
                 f'errors {self.errors}')
             self._window = {'start': time.monotonic(), 'received': received, 'seconds': {}}
 
+    def _on_worker_error(self, err):
+        where = traceback.extract_tb(err.__traceback__)[-1]
+        self._log('error', f'unexpected {type(err).__name__} in the worker thread, which goes '
+                           f'on: {err} (at {where.filename}:{where.lineno})')
+
     def destroy_node(self):
-        self._worker.stop()
+        self._cancel.set()
+        self.stopped = self._worker.stop(STOP_SECONDS)
+        if not self.stopped:
+            self.get_logger().warn(f'the frame in progress did not stop within {STOP_SECONDS} s; '
+                                   'exiting anyway')
         return super().destroy_node()
 
 
+def _cannot_start(err):
+    """Print why the node cannot start, in one line; return the exit status."""
+    print(f'{NODE_NAME}: error: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
+          file=sys.stderr)
+    return 2
+
+
 def main(args=None):
-    extra = remove_ros_args(sys.argv if args is None else args)[1:]
+    argv = sys.argv if args is None else args
+    try:
+        check_params_files(argv)  # rcl would say it with a traceback
+        extra = remove_ros_args(argv)[1:]
+    except Exception as err:  # rcl's own argument errors
+        return _cannot_start(err)
     if extra and extra[0] in ('-h', '--help'):
         print(__doc__.strip())
         return 0
@@ -219,19 +260,26 @@ def main(args=None):
               '(parameters go after --ros-args, e.g. --ros-args -p max_disparity:=192)',
               file=sys.stderr)
         return 2
-    rclpy.init(args=args)
     node = None
     try:
         try:
+            mmap_large_arrays()
+            rclpy.init(args=argv)
             node = GcpStereoNode()
-        except Exception as err:  # invalid start-up parameters: one line, no traceback
-            print(f'{NODE_NAME}: error: cannot start: {err}', file=sys.stderr)
-            return 2
+        except Exception as err:  # settings that cannot work: one line, no traceback
+            return _cannot_start(err)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or shutdown, while starting or spinning
     finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):  # a second Ctrl-C must not abort the exit
+            signal.signal(sig, signal.SIG_IGN)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if node is not None and not node.stopped:  # the interpreter's exit would abort on it
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
+    gc.freeze()  # else the interpreter's exit spends about 0.7 s of CPU collecting objects
     return 0

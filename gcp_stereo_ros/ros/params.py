@@ -10,13 +10,15 @@ switching `cost` changes no other parameter, so parameters can be set in any ord
 what was dumped.
 """
 from dataclasses import dataclass
+import difflib
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from .sync import PairSync
 from ..stereo.cost import COSTS
-from ..stereo.pipeline import COST_DEFAULTS, StereoConfig
+from ..stereo.pipeline import COST_DEFAULTS, MIB, StereoConfig
 
 NODE_NAME = 'gcp_stereo_node'
 # Parameters every rclpy node declares (a dump holds them); the bag tools leave them out.
@@ -85,6 +87,9 @@ PARAMS = (
           'match at 1/N resolution (1, 2 or 4): both images area-binned, max_disparity / N; '
           'outputs at full size, disparities in full-size pixels', 'downsample',
           choices=(1, 2, 4)),
+    Param('memory_limit_mb', _D.memory_limit_mb,
+          'memory budget in MiB of processing one pair: a pair that would need more is '
+          'refused, saying what to lower', 'memory_limit_mb', (64, 1 << 20, 1)),
     Param('image_transport', 'raw',
           "input images: 'raw' (sensor_msgs/Image) or 'compressed' (sensor_msgs/"
           'CompressedImage, jpeg or png, on <image topic>/compressed)',
@@ -96,7 +101,8 @@ PARAMS = (
           'pair left/right images whose stamps differ by at most the tolerance'),
     Param('approximate_sync_tolerance_seconds', 0.0,
           'largest stamp difference of an approximate pair', range=(0.0, 10.0, 0.0)),
-    Param('queue_size', 5, 'images kept per side while waiting for the twin', range=(1, 1000, 1)),
+    Param('queue_size', 5, 'images kept per side while waiting for the twin (at most '
+          'memory_limit_mb / 4 of them in bytes)', range=(1, 1000, 1)),
     Param('use_color', True, "points2 carries the left image's colour in an rgb field"),
     Param('avoid_point_cloud_padding', False,
           'points2 without alignment padding: 16 bytes a point with rgb, 12 without '
@@ -107,7 +113,9 @@ PARAMS = (
 )
 BY_NAME = {p.name: p for p in PARAMS}
 ORDERED = (('P1', 'P2'), ('c_low', 'c_hi'))  # (low, high): low <= high within each cost
-SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds')
+SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds',
+               'memory_limit_mb')
+QUEUE_SHARE = 4  # each sync queue holds at most memory_limit_mb / QUEUE_SHARE
 INPUT_PARAMS = ('image_transport', 'rectify')
 
 
@@ -118,7 +126,23 @@ def check_names(names, where=''):
         per_cost = sorted({n for n in unknown if f'census.{n}' in BY_NAME})
         hint = (f' ({", ".join(per_cost)}: each cost has its own, e.g. census.{per_cost[0]}, '
                 f'sad.{per_cost[0]})' if per_cost else '')
-        raise ValueError(f'{where}unknown parameter(s) {unknown}{hint}; known: {sorted(BY_NAME)}')
+        raise ValueError(f'{where}unknown parameter(s) {unknown}{hint}{_guesses(unknown)}; '
+                         f'known: {sorted(BY_NAME)}')
+
+
+def _guesses(names):
+    """Return ' (did you mean ...?)' with the known names close to unknown `names`, or ''."""
+    short = {n.split('.', 1)[1]: n for n in BY_NAME if n.startswith('census.')}
+    guesses = {}
+    for name in names:
+        close = difflib.get_close_matches(name, [*BY_NAME, *short], n=1)
+        if close and close[0] != name:
+            guesses[name] = short.get(close[0], close[0])
+    if not guesses:
+        return ''
+    if len(names) == 1:
+        return f' (did you mean {guesses[names[0]]!r}?)'
+    return ' (did you mean ' + ', '.join(f'{g!r} for {n!r}' for n, g in guesses.items()) + '?)'
 
 
 def coerce(name, value):
@@ -186,7 +210,40 @@ def uncrossed(values):
 
 def make_sync(values):
     """Build the PairSync that ROS-named parameter values ask for (defaults for missing ones)."""
-    return PairSync(*(values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS))
+    queue_size, approximate, tolerance, memory_limit_mb = (
+        values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS)
+    return PairSync(queue_size, approximate, tolerance,
+                    memory_limit_mb * MIB // QUEUE_SHARE)
+
+
+def config_warnings(pipeline):
+    """Return what is wrong with a valid pipeline's config as used on a stream, as sentences."""
+    config = pipeline.config
+    if config.use_gcp:
+        from ..stereo.cnn import calibrated  # torch is loaded with the CNN anyway
+        top = float(calibrated(pipeline.net, np.ones(1, np.float32))[0])
+        if config.theta >= top:
+            return [f'theta {config.theta:g} selects no GCP: the CNN confidence is at most '
+                    f'{top:.3g} with these weights, so every pixel gets c_hi at every '
+                    'disparity and the disparity is 0 everywhere; lower theta or set use_gcp '
+                    'false']
+    return []
+
+
+def read_yaml(path):
+    """Return the parsed YAML file at `path`; ValueError in one line if it cannot be read."""
+    try:
+        return yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ValueError(f'cannot read parameters file {path}: '
+                         + ' '.join(str(err).split())) from err
+
+
+def check_params_files(argv):
+    """Raise ValueError if a `--params-file` among command-line arguments cannot be read."""
+    for flag, path in zip(argv, argv[1:]):
+        if flag == '--params-file':
+            read_yaml(path)
 
 
 def _flatten(params, prefix=''):
@@ -214,10 +271,7 @@ def load_params_file(path):
     the node, unknown parameters or values of the wrong type.
     """
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        raise ValueError(f'cannot read parameters file {path}: {err}') from err
+    doc = read_yaml(path)
     entries = {key: body['ros__parameters'] for key, body in (doc or {}).items()
                if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict)
                } if isinstance(doc, dict) else {}

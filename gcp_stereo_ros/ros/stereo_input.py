@@ -10,15 +10,20 @@ import os
 import time
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
+from .graph import shm_segment_bytes
 from .messages import stamp_ns
 from .params import make_sync
 from .sync import other_side, SIDES
 
 STREAK_WARN = 10  # one side arriving this often in a row without its twin -> warning
+SHM_ADVICE = ('raise segment_size in the Fast DDS profile of every process of the graph '
+              '(FASTRTPS_DEFAULT_PROFILES_FILE; config/fastdds.xml has 32 MiB, '
+              'the default is 0.5 MiB)')
 # The sensor-data QoS (best effort, volatile), keeping only the newest image per side.
 IMAGE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
                        durability=DurabilityPolicy.VOLATILE)
@@ -52,12 +57,16 @@ class StereoInput:
     `on_pair(stamp_ns, left_msg, right_msg)`; images are taken only while `idle()`, and
     `wake()` has the executor look again. The newest camera_info of each side is kept in
     `info`; `received` and `last_stamp` count and date the images taken, per side, and
-    `paired_at` is the time.monotonic() of the last pair.
+    `paired_at` is the time.monotonic() of the last pair. Images lost in transport or
+    announced (by camera_info) larger than the shared-memory segment are warned about
+    through `log(severity, text)`, which rate-limits.
     """
 
-    def __init__(self, node, values, on_pair, idle):
+    def __init__(self, node, values, on_pair, idle, log):
         self._node = node
         self._on_pair = on_pair
+        self._log = log
+        self._segment = shm_segment_bytes()
         self._group = _WhileIdle(idle)
         self._qos = {'qos_overriding_options': QoSOverridingOptions.with_default_policies()}
         self._wake = node.create_guard_condition(lambda: None)
@@ -66,7 +75,7 @@ class StereoInput:
         self.paired_at = None
         self.info = dict.fromkeys(SIDES)
         self._info_subs = [node.create_subscription(
-            CameraInfo, f'{side}/camera_info', lambda m, s=side: self.info.__setitem__(s, m),
+            CameraInfo, f'{side}/camera_info', lambda m, s=side: self._on_info(s, m),
             qos_profile_sensor_data, **self._qos) for side in SIDES]
         self.subs = {}
         self.subscribe(values)
@@ -78,7 +87,9 @@ class StereoInput:
         kind = CompressedImage if values['image_transport'] == 'compressed' else Image
         self.subs = {side: self._node.create_subscription(
             kind, image_topic(side, values), lambda m, s=side: self._on_image(s, m),
-            IMAGE_QOS, callback_group=self._group, **self._qos) for side in SIDES}
+            IMAGE_QOS, callback_group=self._group, event_callbacks=SubscriptionEventCallbacks(
+                message_lost=lambda _, s=side: self._on_lost(s)), **self._qos)
+            for side in SIDES}
         self.reset_sync(values)
 
     def topics(self):
@@ -96,7 +107,7 @@ class StereoInput:
     def _on_image(self, side, msg):
         self.received[side] += 1
         stamp = self.last_stamp[side] = stamp_ns(msg.header)
-        pair = self.sync.add(side, stamp, msg)
+        pair = self.sync.add(side, stamp, msg, len(msg.data))
         if self.sync.unmatched_streak(side) == STREAK_WARN:
             topics = self.topics()
             hint = ('' if os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE') else
@@ -111,3 +122,18 @@ class StereoInput:
         if pair is not None:
             self.paired_at = time.monotonic()
             self._on_pair(*pair)
+
+    def _on_info(self, side, msg):
+        self.info[side] = msg
+        if msg.width * msg.height > self._segment:  # even as mono8
+            self._log('warn',
+                      f'{self.topics()[side]}: its camera_info announces {msg.width}x'
+                      f'{msg.height} images, {msg.width * msg.height / (1 << 20):.0f} MiB or '
+                      f'more, larger than the {self._segment / (1 << 20):g} MiB shared-memory '
+                      f'segment: Fast DDS will lose them on the way; {SHM_ADVICE}.')
+
+    def _on_lost(self, side):
+        self._log('warn',
+                  f'{self.topics()[side]}: images lost in transport. Fast DDS drops images '
+                  "larger than the publisher's shared-memory segment (here "
+                  f'{self._segment / (1 << 20):g} MiB); if yours are, {SHM_ADVICE}.')

@@ -17,7 +17,9 @@ class PairSync:
 
     A message is paired as soon as the other side holds a message within tolerance (the
     closest one, the older one on a tie), so keep `tolerance` below half the frame period.
-    Each side queues at most `queue_size` unpaired messages; the oldest stamp goes first.
+    Each side queues at most `queue_size` unpaired messages and, beyond its newest one, at
+    most `max_bytes` of them (None = no byte bound; `add` is told each message's size); the
+    oldest stamp goes first.
     Emitting a pair discards, per side, every queued message stamped at or before the
     paired one: a newer pair won, so they can never be used. A later arrival stamped at or
     before the last pair is held aside (the newest one per side): from one side alone it is
@@ -29,35 +31,39 @@ class PairSync:
     Counters: `pairs`, `dropped_left`, `dropped_right` (messages discarded unpaired).
     """
 
-    def __init__(self, queue_size=10, approximate=False, tolerance=0.0):
+    def __init__(self, queue_size=10, approximate=False, tolerance=0.0, max_bytes=None):
         if isinstance(queue_size, bool) or not isinstance(queue_size, int) or queue_size < 1:
             raise ValueError(f'queue_size must be an integer >= 1, got {queue_size!r}')
         if not 0 <= tolerance < math.inf:
             raise ValueError(
                 f'tolerance must be a finite number of seconds >= 0, got {tolerance!r}')
+        if max_bytes is not None and not (isinstance(max_bytes, int) and max_bytes > 0):
+            raise ValueError(f'max_bytes must be None or an integer > 0, got {max_bytes!r}')
         self.queue_size = queue_size
+        self.max_bytes = max_bytes
         self.tolerance_ns = round(tolerance * 1e9) if approximate else 0
         self.pairs = 0
         self.dropped_left = 0
         self.dropped_right = 0
         self._stamps = {side: [] for side in SIDES}  # ascending stamps, parallel to _msgs
         self._msgs = {side: [] for side in SIDES}
+        self._sizes = {side: [] for side in SIDES}  # bytes of each queued message
         self._last = {side: None for side in SIDES}  # stamps of the last emitted pair
-        self._back = {side: None for side in SIDES}  # (stamp, msg) at or before _last
+        self._back = {side: None for side in SIDES}  # (stamp, msg, size) at or before _last
         self._streak = {side: 0 for side in SIDES}
 
-    def add(self, side, stamp_ns, msg):
+    def add(self, side, stamp_ns, msg, size=0):
         """
-        Queue `msg` of `side`; return (stamp_left_ns, left_msg, right_msg) once paired.
+        Queue `msg` (of `size` bytes) of `side`; return (stamp_left_ns, left_msg, right_msg).
 
-        Return None otherwise.
+        Return None while it waits for its twin.
         """
         other = other_side(side)
         if self._last[side] is None or stamp_ns > self._last[side]:
-            return self._add(side, other, stamp_ns, msg)
+            return self._add(side, other, stamp_ns, msg, size)
         if self._back[side] is not None:
             self._drop(side, 1)
-        self._back[side] = stamp_ns, msg
+        self._back[side] = stamp_ns, msg, size
         if self._back[other] is None:
             return None
         back = self._back  # both sides went back: a new stream
@@ -68,7 +74,7 @@ class PairSync:
         self._add(other, side, *back[other])
         return self._add(side, other, *back[side])
 
-    def _add(self, side, other, stamp_ns, msg):
+    def _add(self, side, other, stamp_ns, msg, size):
         stamps = self._stamps[other]
         lo = bisect.bisect_left(stamps, stamp_ns - self.tolerance_ns)
         hi = bisect.bisect_right(stamps, stamp_ns + self.tolerance_ns)
@@ -76,12 +82,15 @@ class PairSync:
             i = bisect.bisect_right(self._stamps[side], stamp_ns)
             self._stamps[side].insert(i, stamp_ns)
             self._msgs[side].insert(i, msg)
-            if len(self._stamps[side]) > self.queue_size:
-                del self._stamps[side][0], self._msgs[side][0]
-                self._drop(side, 1)
+            self._sizes[side].insert(i, size)
+            while len(self._stamps[side]) > 1 and (
+                    len(self._stamps[side]) > self.queue_size
+                    or (self.max_bytes is not None and sum(self._sizes[side]) > self.max_bytes)):
+                self._discard_first(side, 1)
             return None
         j = min(range(lo, hi), key=lambda k: abs(stamps[k] - stamp_ns))
         match_stamp, match = stamps.pop(j), self._msgs[other].pop(j)
+        del self._sizes[other][j]
         self._discard_upto(side, stamp_ns)
         self._discard_upto(other, match_stamp)
         for s in SIDES:  # stragglers
@@ -105,9 +114,11 @@ class PairSync:
         return self._streak[side]
 
     def _discard_upto(self, side, stamp_ns):
-        n = bisect.bisect_right(self._stamps[side], stamp_ns)
-        del self._stamps[side][:n]
-        del self._msgs[side][:n]
+        self._discard_first(side, bisect.bisect_right(self._stamps[side], stamp_ns))
+
+    def _discard_first(self, side, n):
+        for queue in (self._stamps, self._msgs, self._sizes):
+            del queue[side][:n]
         self._drop(side, n)
 
     def _drop(self, side, n):

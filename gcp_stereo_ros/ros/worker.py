@@ -8,12 +8,18 @@ class NewestWorker:
 
     An item still waiting when a newer one arrives is dropped and counted in `stale`, so
     the caller never falls behind and memory holds at most one waiting item. `on_idle()`
-    is called from the thread each time it has nothing left to do.
+    is called from the thread each time it has nothing left to do, and `on_quiet()` once no
+    item has come for `quiet_seconds` since the last one (the node lets go of its arrays
+    then). The thread outlives any exception of these: it goes to `on_error(err)`.
     """
 
-    def __init__(self, process, name, on_idle=lambda: None):
+    def __init__(self, process, name, on_error, on_idle=lambda: None, on_quiet=None,
+                 quiet_seconds=2.0):
         self._process = process
+        self._on_error = on_error
         self._on_idle = on_idle
+        self._on_quiet = on_quiet
+        self._quiet_seconds = quiet_seconds
         self.stale = 0
         self._pending = None
         self._working = False
@@ -36,27 +42,43 @@ class NewestWorker:
             self._pending = item
             self._cv.notify()
 
-    def stop(self):
-        """Stop after the item in progress, if any; waiting items are dropped."""
+    def stop(self, timeout=None):
+        """
+        Drop waiting items and wait up to `timeout` s for the item in progress, if any.
+
+        Return True if the thread has ended.
+        """
         with self._cv:
             self._stopping = True
             self._cv.notify()
-        self._thread.join()
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
 
     def _run(self):
+        quiet_due = False  # an item was processed and on_quiet has not run since
         while True:
             with self._cv:
-                while self._pending is None and not self._stopping:
-                    self._cv.wait()
+                ready = self._cv.wait_for(lambda: self._pending is not None or self._stopping,
+                                          self._quiet_seconds if quiet_due else None)
                 if self._stopping:
                     return
-                item, self._pending = self._pending, None
-                self._working = True
-            try:
-                self._process(*item)
-            finally:
-                with self._cv:
-                    self._working = False
-                    idle = self._pending is None and not self._stopping
-                if idle:
-                    self._on_idle()
+                if ready:
+                    item, self._pending = self._pending, None
+                    self._working = True
+            if not ready:
+                quiet_due = False
+                self._call(self._on_quiet)
+                continue
+            self._call(self._process, *item)
+            with self._cv:
+                self._working = False
+                idle = self._pending is None and not self._stopping
+            if idle:
+                self._call(self._on_idle)
+            quiet_due = self._on_quiet is not None
+
+    def _call(self, fn, *args):
+        try:
+            fn(*args)
+        except Exception as err:  # whatever failed, the thread goes on: say why
+            self._on_error(err)

@@ -83,7 +83,8 @@ def load_net(path=None, device='cpu'):
     Return a GcpNet in eval mode with the weights at `path` (default: the shipped weights).
 
     The file holds {'state_dict': ..., 'meta': {...}} (see `gcp_stereo_ros.tools.train`).
-    Raises FileNotFoundError if it does not exist, ValueError if it cannot be read as such.
+    Raises FileNotFoundError if it does not exist, ValueError if it cannot be read as such
+    or holds NaN or infinite weights.
     """
     path = Path(DEFAULT_WEIGHTS if path is None else path)
     if not path.is_file():
@@ -95,6 +96,9 @@ def load_net(path=None, device='cpu'):
     except Exception as e:  # any unreadable or mismatching file is reported the same way
         raise ValueError(f'GCP CNN weights file {path} is corrupt or not a GcpNet checkpoint: '
                          f'{e}') from e
+    if not all(torch.isfinite(t).all() for t in net.state_dict().values()):
+        raise ValueError(f'GCP CNN weights file {path} holds NaN or infinite weights '
+                         '(a diverged training run?)')
     net.meta = blob.get('meta', {})
     net.calibration = _calibration(blob.get('calibration'), path)
     return net.to(device).eval()
@@ -171,7 +175,7 @@ def _unit_rows(bits, shift, y):
     return out
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
 def _best_match(bits, shift, max_disp, cof_c, cof_d, cof_dr):
     """
     Stream max / first argmax over d of Vol(y, x, d) = <f_L[y, x], f_R[y, x - d]>.
@@ -251,16 +255,21 @@ def padded_input(x):
     return F.pad(x[:, None], (PAD,) * 4, mode='replicate')
 
 
-def descriptors(net, x, bf16=False):
+def descriptors(net, x, bf16=False, cancel=None):
     """
     Return the raw branch output (N, H, W, 64) of a padded input, on the input's device.
 
     The net runs in channels_last (1.6x faster on CPU than the default layout, and the
-    permute to (N, H, W, 64) is then free), with bfloat16 autocast if `bf16`.
+    permute to (N, H, W, 64) is then free), with bfloat16 autocast if `bf16`. `cancel`: a
+    CancelFlag, checked before each layer (raises Cancelled).
     """
     net.to(memory_format=torch.channels_last)  # in place; a 1-channel input cannot select it
     with torch.inference_mode(), torch.autocast(x.device.type, torch.bfloat16, enabled=bf16):
-        return net.branch(x).permute(0, 2, 3, 1)
+        for layer in net.branch:  # = net.branch(x), stoppable between layers
+            if cancel is not None:
+                cancel.check()
+            x = layer(x)
+        return x.permute(0, 2, 3, 1)
 
 
 def _band_best(fa, fb, max_disp):
@@ -325,7 +334,8 @@ def _synchronize(device):
         torch.cuda.synchronize(device)
 
 
-def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=False, seconds=None):
+def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=False, seconds=None,
+               cancel=None):
     """
     Return the CNN matching confidence of a rectified pair for disparities 0..max_disp-1.
 
@@ -336,7 +346,8 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     (float32) and the correlation run in a numba kernel, strip by strip, streaming over d
     without materializing the volume; on a GPU in torch there (`device_confidence`).
     `seconds`: a dict that gains the wall time of the convolutions ('cnn') and of the
-    correlation ('confidence').
+    correlation ('confidence'). `cancel`: a CancelFlag, checked before each layer of each
+    strip on the CPU (raises Cancelled).
 
     Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1] mapped through the
     net's calibration (`calibrated`; the raw cosine without one), int32 (H, W)
@@ -363,7 +374,7 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     for y0 in range(0, h, STRIP_ROWS):
         y1 = min(y0 + STRIP_ROWS, h)
         t = time.perf_counter()
-        f = descriptors(net, x[:, :, y0:y1 + 2 * PAD], bf16).cpu().contiguous()
+        f = descriptors(net, x[:, :, y0:y1 + 2 * PAD], bf16, cancel).cpu().contiguous()
         if f.dtype == torch.bfloat16:  # the numba kernels widen and normalize it
             bits, shift = f.view(torch.int16).numpy().view(np.uint16), 16
         else:

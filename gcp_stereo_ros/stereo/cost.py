@@ -22,6 +22,7 @@ shared pairs the untruncated mean exceeds 3.2 in well under 1% of valid cells.
 from numba import njit, prange
 import numpy as np
 
+from .cancel import flag_array
 from .images import gray_pair, standardize
 
 COSTS = ('census', 'sad')
@@ -62,7 +63,7 @@ def _popcount(v):
     return (v * _H01) >> np.uint64(56)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _census_transform(padded, rad):
     """
     Return the bit strings of the image inside `padded` (padded by `rad` on every side).
@@ -101,11 +102,13 @@ def census_transform(gray, window=9):
     return _census_transform(np.pad(np.asarray(gray, dtype=np.float32), rad, mode='edge'), rad)
 
 
-@njit(parallel=True, cache=True)
-def _census_cost(cl, cr_rev, ndisp, rad, scale, invalid, out):
+@njit(parallel=True, cache=True, nogil=True)
+def _census_cost(cl, cr_rev, ndisp, rad, scale, invalid, out, cancel):
     """`cr_rev`: the right bit strings with each row reversed (see `cost_volume`)."""
     h, w = cl.shape[1], cl.shape[2]
     for y in prange(h):
+        if cancel[0]:
+            continue
         row_ok = rad <= y < h - rad
         right_lo = cr_rev[0, y]
         right_hi = cr_rev[1, y]
@@ -123,12 +126,14 @@ def _census_cost(cl, cr_rev, ndisp, rad, scale, invalid, out):
                 cell[d] = invalid
 
 
-@njit(parallel=True, cache=True)
-def _sad_cost(left, right_rev, ndisp, rad, scale, invalid, out):
+@njit(parallel=True, cache=True, nogil=True)
+def _sad_cost(left, right_rev, ndisp, rad, scale, invalid, out, cancel):
     """`right_rev`: the right image with each row reversed (see `cost_volume`)."""
     h, w = left.shape
     area = np.float32((2 * rad + 1) ** 2)
     for y in prange(h):
+        if cancel[0]:
+            continue
         if y < rad or y >= h - rad:
             out[y] = invalid
             continue
@@ -198,7 +203,7 @@ def volume_type(cost, window, scale, dtype):
 
 
 def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=1,
-                dtype=np.float32):
+                dtype=np.float32, cancel=None):
     """
     Return the matching cost volume (H, W, max_disp) of a rectified pair (see module doc).
 
@@ -206,7 +211,8 @@ def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=
     uint16 for Census.
 
     `left`, `right`: same-size gray or RGB arrays (uint8, uint16 or float). `out`: an array
-    to write the volume into (see `output_array`).
+    to write the volume into (see `output_array`). `cancel`: a CancelFlag; once set, the
+    remaining rows are skipped (the volume is then incomplete: check the flag).
     """
     dtype = volume_type(cost, window, scale, dtype)
     lg, rg = gray_pair(left, right)
@@ -218,9 +224,9 @@ def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=
     if cost == 'census':
         right_rev = np.ascontiguousarray(census_transform(rg, window)[:, :, ::-1])
         _census_cost(census_transform(lg, window), right_rev, int(max_disp), window // 2,
-                     int(scale), invalid, out)
+                     int(scale), invalid, out, flag_array(cancel))
     else:
         right_rev = np.ascontiguousarray(standardize(rg)[:, ::-1])
         _sad_cost(standardize(lg), right_rev, int(max_disp), window // 2, np.float32(scale),
-                  invalid, out)
+                  invalid, out, flag_array(cancel))
     return out

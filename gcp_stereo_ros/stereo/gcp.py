@@ -5,7 +5,7 @@ import numpy as np
 from .cost import UINT16_MAX
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _refine(cost, gcp, cof_d, c_hi, c_low):
     h, w, nd = cost.shape
     for y in prange(h):

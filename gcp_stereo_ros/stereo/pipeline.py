@@ -3,6 +3,7 @@ The one stereo pipeline every caller uses: evaluation, the ROS node and the bag 
 
 cost volume -> (CNN confidence -> GCPs -> refinement) -> SGM -> winner-takes-all.
 """
+import ctypes
 import dataclasses
 from dataclasses import dataclass
 import math
@@ -14,7 +15,9 @@ import numpy as np
 from . import cost as cost_mod
 from .gcp import refine, select
 from .images import bin_area, gray_pair, mean_std, upsample
-from .sgm import aggregate, disparity, finish, path_sum_bound, PATHS
+from .sgm import aggregate, directions, disparity, finish, path_sum_bound, PATHS
+
+MIB = 1 << 20
 
 # Defaults for each matching cost, chosen by cross-validation on the validation frames
 # (README: "Method and results"); theta is on the calibrated scale (cnn.calibrated).
@@ -61,6 +64,9 @@ class StereoConfig:
     # Match at 1/downsample of the resolution (area-binned images, max_disp / downsample);
     # the outputs come back at full size, disparities in full-size pixels.
     downsample: int = 1
+    # Pairs whose pipeline would need more memory are refused (see `memory_bytes`). 3 GiB:
+    # with the process's own 0.4-0.6 GB the node stays under half of an 8 GB computer.
+    memory_limit_mb: int = 3072
 
     @classmethod
     def for_cost(cls, cost, preset='default', **overrides):
@@ -101,6 +107,11 @@ class StereoConfig:
         if not (isinstance(self.downsample, (int, np.integer)) and not isinstance(
                 self.downsample, bool) and self.downsample in DOWNSAMPLE):
             raise ValueError(f'downsample must be one of {DOWNSAMPLE}, got {self.downsample!r}')
+        if not (isinstance(self.memory_limit_mb, (int, np.integer))
+                and not isinstance(self.memory_limit_mb, bool)
+                and 64 <= self.memory_limit_mb <= 1 << 20):
+            raise ValueError('memory_limit_mb must be an integer in [64, 1048576], '
+                             f'got {self.memory_limit_mb!r}')
         return self
 
     @property
@@ -153,13 +164,96 @@ def volume_arithmetic(cfg):
     return scale, np.dtype(np.uint16), lambda v: round(v * scale)
 
 
+# Bytes per matched pixel besides the volumes, alive at once while the cost volume is built
+# (the gray pair 8, the CNN outputs 12, the Census bit strings 48), rounded up; it covers
+# the later stages too.
+PIXEL_BYTES = 80
+# While the CNN runs: the gray pair, its network input and the CNN outputs (8 + 8 + 12 bytes
+# per pixel), and of one strip four layer outputs' worth (a convolution's, its ReLU's, the
+# descriptors copied out, and oneDNN's scratchpad, which it keeps for the largest so far).
+CNN_PIXEL_BYTES = 28
+STRIP_LAYERS = 4
+# With downsample > 1, per full-size pixel: the gray pair (8), the outputs blown up (17),
+# rounded up.
+FULL_PIXEL_BYTES = 32
+
+
+def memory_bytes(cfg, height, width):
+    """
+    Return an upper bound of the memory the pipeline allocates for a pair of this size.
+
+    At the matching resolution (H/downsample x W/downsample, D = matched_disp): the cost and
+    path-sum volumes (H x W x D each, kept between frames) and the SGM sweep buffers (3 rows
+    of each path from above, W x D each), plus whichever needs more: the CNN's arrays with
+    one strip's activations (two images, 64 float32 maps of STRIP_ROWS + 8 rows), or
+    PIXEL_BYTES per pixel for the later stages; with downsample, FULL_PIXEL_BYTES per
+    full-size pixel. Measured peaks stay below it (README, "Failures, memory and shutdown").
+    """
+    fixed, per_disparity = _memory_terms(cfg, height, width)
+    return fixed + per_disparity * cfg.matched_disp
+
+
+def _memory_terms(cfg, height, width):
+    """Return (bytes, bytes per matched disparity) of `memory_bytes`."""
+    f = cfg.downsample
+    h, w = height // f, width // f
+    itemsize = volume_arithmetic(cfg)[1].itemsize
+    sweep_rows = 3 * sum(dy > 0 for _, dy in directions(cfg.paths))
+    per_disparity = (2 * h + sweep_rows) * w * itemsize
+    fixed = PIXEL_BYTES * h * w
+    if cfg.use_gcp:
+        from .cnn import FEATURES, PAD, STRIP_ROWS
+        strip = 2 * FEATURES * (min(STRIP_ROWS, h) + 2 * PAD) * (w + 2 * PAD) * 4
+        fixed = max(fixed, CNN_PIXEL_BYTES * h * w + STRIP_LAYERS * strip)
+    if f > 1:
+        fixed += FULL_PIXEL_BYTES * height * width
+    return fixed, per_disparity
+
+
+def check_memory(cfg, height, width):
+    """Raise ValueError if a pair of this size needs more than cfg.memory_limit_mb."""
+    need = memory_bytes(cfg, height, width)
+    if need <= cfg.memory_limit_mb * MIB:
+        return
+    fixed, per_disparity = _memory_terms(cfg, height, width)
+    fits = (cfg.memory_limit_mb * MIB - fixed) // per_disparity * cfg.downsample
+    f, nd = cfg.downsample, cfg.matched_disp
+    changes = ([f'lower max_disparity (at most {fits} fits)'] if fits >= 1 else []) + (
+        ['raise downsample'] if f < max(DOWNSAMPLE) else []) + ['raise memory_limit_mb']
+    what = ', '.join(changes[:-1]) + ', or ' + changes[-1] if len(changes) > 1 else changes[0]
+    raise ValueError(
+        f'{width}x{height} at max_disparity {cfg.max_disp}'
+        + (f', downsample {f},' if f > 1 else '')
+        + f' needs about {need / MIB:.0f} MB (two {width // f}x{height // f}x{nd} '
+        f'{volume_arithmetic(cfg)[1]} volumes), over memory_limit_mb {cfg.memory_limit_mb}: '
+        + what)
+
+
+def mmap_large_arrays():
+    """
+    Make glibc's malloc serve blocks of 1 MiB or more with mmap, in this whole process.
+
+    For long-running processes (the node, the bag tool). By default glibc raises that
+    threshold up to 32 MiB after a large block is freed, and serves blocks below it from
+    heaps that keep freed memory: measured at 741x500, 100 MB more after the arrays were let
+    go and steady peaks 30 % higher. With it, RSS follows the arrays alive. No-op without
+    glibc.
+    """
+    try:
+        ctypes.CDLL(None).mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):
+        pass
+
+
 class StereoPipeline:
     """
     Runs a StereoConfig on image pairs; the CNN is loaded once, on first use.
 
     The cost volume and the summed path costs are written into two arrays kept from the
     previous call of the same size and type (two fresh (H, W, D) arrays per frame would cost
-    a page fault per 4 KiB). So one pipeline serves one thread at a time.
+    a page fault per 4 KiB); kept arrays that do not fit a pair are let go before new ones
+    are allocated, and `release` lets them all go. So one pipeline serves one thread at a
+    time.
     """
 
     def __init__(self, config=None, net=None, _workspace=None):
@@ -184,10 +278,18 @@ class StereoPipeline:
         """
         Return the kept array `name` if it has `shape` and `dtype`, else None.
 
-        With None the callee allocates; that array is kept then.
+        With None the callee allocates; a kept array of another shape or type is let go here,
+        and the new one is kept then.
         """
         a = self._workspace.get(name)
-        return a if a is not None and a.shape == shape and a.dtype == dtype else None
+        if a is not None and a.shape == shape and a.dtype == dtype:
+            return a
+        self._workspace.pop(name, None)
+        return None
+
+    def release(self):
+        """Let go of the kept arrays (of every pipeline sharing them), e.g. when idle."""
+        self._workspace.clear()
 
     @property
     def net(self):
@@ -200,13 +302,15 @@ class StereoPipeline:
             self._net = load_net(self.config.weights or None, device)
         return self._net
 
-    def __call__(self, left, right, confidence=None):
+    def __call__(self, left, right, confidence=None, cancel=None):
         """
         Return the StereoResult of a pair.
 
         `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair, max_disp and
         downsample, as its StereoResult holds them, to sweep GCP/SGM parameters without
-        running the CNN again.
+        running the CNN again. `cancel`: a CancelFlag that another thread may set to stop the
+        run (raises Cancelled within a row of a CPU kernel or a CNN layer). Raises
+        ValueError for bad input or a pair that needs more than memory_limit_mb.
         """
         cfg = self.config
         if cfg.use_gcp and confidence is not None and len(confidence) != 3:
@@ -222,8 +326,11 @@ class StereoPipeline:
             if stage is not None:
                 seconds[stage] = now - t
             t = now
+            if cancel is not None:
+                cancel.check()
 
         left, right = gray_pair(left, right)
+        check_memory(cfg, *left.shape)
         shape, f = left.shape, cfg.downsample
         if f > 1:
             left, right = bin_area(left, f), bin_area(right, f)
@@ -232,8 +339,11 @@ class StereoPipeline:
                 cof_c, cof_d, cof_dr = (np.asarray(a)[:h * f:f, :w * f:f] for a in confidence)
                 confidence = cof_c, cof_d // f, cof_dr // f
             lap('downsample')
-        match = self._match if cfg.device == 'cpu' else self._match_cuda
-        outputs = match(left, right, confidence if cfg.use_gcp else None, lap, seconds)
+        confidence = confidence if cfg.use_gcp else None
+        if cfg.device == 'cpu':
+            outputs = self._match(left, right, confidence, lap, seconds, cancel)
+        else:
+            outputs = self._match_cuda(left, right, confidence, lap, seconds)
         if f > 1:  # back to full size, disparities in full-size pixels
             disp, gcp, cof_c, cof_d, cof_dr = outputs
             disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
@@ -243,32 +353,34 @@ class StereoPipeline:
             lap('upsample')
         return StereoResult(*outputs, seconds)
 
-    def _match(self, left, right, confidence, lap, seconds):
+    def _match(self, left, right, confidence, lap, seconds, cancel):
         """Return (disparity, gcp, cof_c, cof_d, cof_dr) of a gray pair, on the CPU."""
         cfg = self.config
         nd = cfg.matched_disp
+        shape = left.shape + (nd,)
+        scale, dtype, fixed = volume_arithmetic(cfg)
+        # Kept arrays of another shape or type are let go now, before anything is allocated.
+        kept = {name: self._array(name, shape, dtype) for name in ('cost', 'total')}
         gcp = cof_c = cof_d = cof_dr = None
         if cfg.use_gcp:
             if confidence is None:
                 from .cnn import confidence as cnn_confidence
                 confidence = cnn_confidence(self.net, left, right, nd, cfg.device, cfg.bf16,
-                                            seconds=seconds)
+                                            seconds=seconds, cancel=cancel)
                 lap(None)  # the CNN timed its own stages
             cof_c, cof_d, cof_dr = confidence
-        shape = left.shape + (nd,)
-        scale, dtype, fixed = volume_arithmetic(cfg)
-        volume = cost_mod.cost_volume(left, right, nd, cfg.cost, cfg.window,
-                                      self._array('cost', shape, dtype), scale or 1, dtype)
+        volume = cost_mod.cost_volume(left, right, nd, cfg.cost, cfg.window, kept['cost'],
+                                      scale or 1, dtype, cancel)
         lap('cost')
         if cfg.use_gcp:
             gcp = select(cof_c, cof_d, cof_dr, cfg.theta, cfg.gcp_lr_check)
             refine(volume, gcp, cof_d, fixed(cfg.c_hi), fixed(cfg.c_low))
             lap('refine')
-        total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths,
-                          self._array('total', shape, dtype))
+        total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, kept['total'],
+                          cancel)
         self._workspace.update(cost=volume, total=total)
         lap('sgm')
-        disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median)
+        disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median, cancel)
         lap('wta')
         return disp, gcp, cof_c, cof_d, cof_dr
 

@@ -22,6 +22,7 @@ from numba import njit, prange, types
 from numba.extending import overload
 import numpy as np
 
+from .cancel import flag_array
 from .cost import output_array, UINT16_MAX
 
 PATHS = (4, 8, 16)
@@ -122,11 +123,13 @@ def _path_step(c, prev, prev_min, p1, p2, out):
     return _min_key(out)
 
 
-@njit(parallel=True, cache=True, fastmath=True)
-def _horizontal(cost, p1, p2, total):
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def _horizontal(cost, p1, p2, total, cancel):
     """Set total = L_(1,0) + L_(-1,0): both horizontal paths of each row."""
     h, w, nd = cost.shape
     for y in prange(h):
+        if cancel[0]:
+            continue
         a = np.empty(nd, cost.dtype)
         b = np.empty(nd, cost.dtype)
         m = np.empty(1, cost.dtype)  # min of the last path step, written through its key
@@ -149,14 +152,16 @@ def _horizontal(cost, p1, p2, total):
                     total[y, x] = cur
 
 
-@njit(parallel=True, cache=True, fastmath=True)
-def _sweep(cost, p1, p2, total, dirs, down):
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def _sweep(cost, p1, p2, total, dirs, down, cancel):
     """Accumulate total += L_r for each r in dirs; dy > 0 counts rows back in sweep order."""
     h, w, nd = cost.shape
     buf = np.empty((dirs.shape[0], 3, w, nd), cost.dtype)
     mins = np.empty((dirs.shape[0], 3, w), cost.dtype)  # min_d of each buf row
     min_keys = _keys(mins)
     for i in range(h):
+        if cancel[0]:
+            return
         y = i if down else h - 1 - i
         slot = i % 3
         for x in prange(w):
@@ -177,7 +182,7 @@ def _sweep(cost, p1, p2, total, dirs, down):
                     acc[d] = _as(acc, acc[d] + cur[d])
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _scan(cost):
     """Return (number of cells that are negative, NaN or infinite, largest value)."""
     flat = cost.reshape(-1)
@@ -222,7 +227,7 @@ def penalties(dtype, p1, p2, paths, top):
     return dtype.type(p1), dtype.type(p2)
 
 
-def aggregate(cost, p1, p2, paths=16, out=None):
+def aggregate(cost, p1, p2, paths=16, out=None, cancel=None):
     """
     Return the summed path costs S (H, W, D) of a cost volume (see module doc).
 
@@ -231,6 +236,7 @@ def aggregate(cost, p1, p2, paths=16, out=None):
     Costs must be finite and >= 0 (every matching cost here is); ValueError otherwise. For
     uint16, P1 and P2 must be integers and paths * (max cost + P2) at most 65535.
     `out`: an array to write S into (see `cost.output_array`), not `cost` itself.
+    `cancel`: a CancelFlag; once set, the remaining rows are skipped (S is then incomplete).
     """
     cost = as_volume(np.asarray(cost))
     if cost.ndim != 3 or 0 in cost.shape:
@@ -244,12 +250,13 @@ def aggregate(cost, p1, p2, paths=16, out=None):
     total = output_array(out, cost.shape, cost.dtype)
     if np.shares_memory(total, cost):
         raise ValueError('out must not overlap the cost volume')
-    _horizontal(cost, p1, p2, total)
+    flag = flag_array(cancel)
+    _horizontal(cost, p1, p2, total, flag)
     down = np.array([d for d in directions(paths) if d[1] > 0], np.int64)
     # Seen from a bottom-up sweep, (dx, dy) from below is (-dx, dy) from above.
     up = np.array([(-dx, dy) for dx, dy in down], np.int64)
-    _sweep(cost, p1, p2, total, down, True)
-    _sweep(cost, p1, p2, total, up, False)
+    _sweep(cost, p1, p2, total, down, True, flag)
+    _sweep(cost, p1, p2, total, up, False, flag)
     return total
 
 
@@ -266,10 +273,12 @@ def parabola_offset(lo, mid, hi):
     return (lo - hi) / (2.0 * curv) if curv > 0 else 0.0
 
 
-@njit(parallel=True, cache=True)
-def _wta(total, subpixel, lr_tol, out, consistent):
+@njit(parallel=True, cache=True, nogil=True)
+def _wta(total, subpixel, lr_tol, out, consistent, cancel):
     h, w, nd = total.shape
     for y in prange(h):
+        if cancel[0]:
+            continue
         for x in range(w):
             s = total[y, x]
             m = _min_key(s)  # S >= 0: the first d whose key equals the minimum's
@@ -292,7 +301,7 @@ def _wta(total, subpixel, lr_tol, out, consistent):
             out[y, x] = best + offset
 
 
-def disparity(total, subpixel=False, lr_check=False, median=False):
+def disparity(total, subpixel=False, lr_check=False, median=False, cancel=None):
     """
     Return the winner-takes-all disparity, float32 (H, W), from summed path costs S.
 
@@ -302,7 +311,8 @@ def disparity(total, subpixel=False, lr_check=False, median=False):
     Options (all off by default; the paper uses none): `subpixel` parabola fit through the
     minimum and its neighbours; `median` 3x3 median filter; `lr_check` marks NaN where the
     right-view winner at x - d differs from d by more than 1 px (applied after the median,
-    so invalid pixels stay NaN).
+    so invalid pixels stay NaN). `cancel`: a CancelFlag; once set, the remaining rows are
+    skipped.
     """
     total = as_volume(np.asarray(total))
     bad = _scan(total)[0] if total.dtype == np.float32 else 0
@@ -310,7 +320,7 @@ def disparity(total, subpixel=False, lr_check=False, median=False):
         raise ValueError(f'summed path costs have {bad} cells that are negative, NaN or infinite')
     out = np.empty(total.shape[:2], np.float32)
     consistent = np.ones(total.shape[:2], np.bool_)
-    _wta(total, subpixel, 1 if lr_check else -1, out, consistent)
+    _wta(total, subpixel, 1 if lr_check else -1, out, consistent, flag_array(cancel))
     return finish(out, consistent, median)
 
 

@@ -30,8 +30,10 @@ messages whose bag timestamp is the pair's stamp. Its output bag holds every inp
 (earlier outputs excepted) plus the --outputs (default disparity, gcp_mask, confidence; also
 depth, points2), built as the node builds them, under the stereo namespace (--namespace, or
 the part of the image topics before left/right), stamped with the left header and written
-at the bag timestamp of the image that completed the pair. Bags are written to a hidden
-sibling and renamed into place on success.
+at the bag timestamp of the image that completed the pair. A pair the node would skip
+(a bad image, a pair over memory_limit_mb) is skipped with a line on stderr. Bags are
+written to a hidden sibling and renamed into place on success; Ctrl-C or SIGTERM removes
+it, and one left by a killed run is removed by the next run on the same output.
 """
 import argparse
 from contextlib import contextmanager
@@ -57,11 +59,12 @@ from ..evaluation.metrics import error_rates, THRESHOLDS
 from ..evaluation.viz import colorize, save_png
 from ..ros import messages
 from ..ros.camera import Rectifier, stereo_model
-from ..ros.params import config_from_params, load_params_file, make_sync
+from ..ros.graph import shm_segment_bytes
+from ..ros.params import config_from_params, config_warnings, load_params_file, make_sync
 from ..ros.rosimage import array_to_compressed_fields, image_to_array, message_to_array
 from ..ros.sync import SIDES
 from ..stereo.images import mask_image
-from ..stereo.pipeline import StereoPipeline
+from ..stereo.pipeline import mmap_large_arrays, StereoPipeline
 
 PROG = 'gcp-stereo-bag'
 IMAGE, INFO, STRING = 'sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'std_msgs/msg/String'
@@ -154,12 +157,18 @@ def output_bag(out, storage, force):
     Yield a rosbags Writer on a hidden staging sibling of `out`.
 
     The bag is moved to `out` only if the block succeeds; the staging folder is removed either
-    way. An existing `out` needs `force`.
+    way, and those of killed runs (their process gone) before this one starts. An existing
+    `out` needs `force`.
     """
     out = Path(out)
     if out.exists() and not force:
         raise ValueError(f'{out} exists; pass --force to replace it')
-    staging = out.with_name(f'.{out.name}.partial-{os.getpid()}')
+    prefix = f'.{out.name}.partial-'
+    for old in out.parent.glob(prefix + '*'):
+        pid = old.name[len(prefix):]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
+    staging = out.with_name(f'{prefix}{os.getpid()}')
     staging.mkdir(parents=True)
     try:
         with Writer(staging / out.name, version=Writer.VERSION_LATEST,
@@ -175,6 +184,16 @@ def output_bag(out, storage, force):
 
 
 # ---- make -------------------------------------------------------------------------------
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        pass
+    return True
+
+
 def camera_info(header, frame, side):
     """
     Return the CameraInfo of a rectified camera of `frame`.
@@ -331,6 +350,8 @@ class Runner:
         self.gt = {}  # bag timestamp -> {'gt/...': message} until its pair comes
         self.rates = []
         self.warned = set()
+        self.processed = 0
+        self.skipped = 0
 
     def add(self, role, msg, timestamp):
         """Take one message of `role` (left, right, left_info, right_info, gt/...)."""
@@ -339,7 +360,7 @@ class Runner:
         elif role.endswith('_info'):
             self.info[role.removesuffix('_info')] = msg
         else:
-            pair = self.sync.add(role, messages.stamp_ns(msg.header), msg)
+            pair = self.sync.add(role, messages.stamp_ns(msg.header), msg, len(msg.data))
             if pair is not None:
                 self.process(*pair, timestamp)
 
@@ -349,18 +370,30 @@ class Runner:
             return self.rectifier(side, self.info[side], image, self.topics[side])
         return image
 
+    def warn_once(self, text):
+        if text not in self.warned:
+            self.warned.add(text)
+            warn(text)
+
     def process(self, stamp, left_msg, right_msg, timestamp):
         config = self.pipeline.config
-        left, right = self.image('left', left_msg), self.image('right', right_msg)
-        result = self.pipeline(left, right)
         try:
-            model = stereo_model(self.info['left'], self.info['right'], left.shape)
+            left, right = self.image('left', left_msg), self.image('right', right_msg)
+            result = self.pipeline(left, right)
+        except ValueError as err:  # as the node: say why, go on with the next pair
+            self.skipped += 1
+            tqdm.write(f'{PROG}: skipping pair at stamp {stamp} ns: {err}', file=sys.stderr)
+            return
+        self.processed += 1
+        try:
+            model = stereo_model(self.info['left'], self.info['right'], left.shape,
+                                 config.max_disp)
         except ValueError as err:
             model = None
-            text = f'no depth or points2: {err}'
-            if {'depth', 'points2'} & self.outputs and text not in self.warned:
-                self.warned.add(text)
-                warn(text)
+            if None not in self.info.values():  # calibrated, but wrongly
+                self.warn_once(f'camera_info ignored (no f, t, depth or points2): {err}')
+            elif {'depth', 'points2'} & self.outputs:
+                self.warn_once(f'no depth or points2: {err}')
         out = messages.output_messages(
             TYPES, left_msg.header, self.outputs, result, config, model, left,
             self.values.get('use_color', True), not self.values.get('avoid_point_cloud_padding'))
@@ -395,10 +428,18 @@ def run(args):
 
 
 def run_pipeline(values):
-    """Return the pipeline of node parameters `values` for `convert`, its CNN loaded."""
+    """
+    Return the pipeline of node parameters `values` for `convert`, its CNN loaded.
+
+    Warnings about the values go to stderr; glibc is told to return freed arrays (a
+    long-running process).
+    """
+    mmap_large_arrays()
     pipeline = StereoPipeline(config_from_params(values))
     if pipeline.config.use_gcp:
         pipeline.net  # a missing weights file fails here, before any output
+    for text in config_warnings(pipeline):
+        warn(text)
     return pipeline
 
 
@@ -440,12 +481,15 @@ def convert(pipeline, values, args):
         if sync.pairs == 0:
             raise ValueError(f'{args.inp}: no left/right image pair with matching stamps '
                              f'on {topics["left"]} and {topics["right"]}')
+        if runner.processed == 0:
+            raise ValueError(f'{args.inp}: none of its {sync.pairs} pairs could be processed '
+                             '(reasons above)')
     if runner.rates:
         print_rates('mean', {k: float(np.mean([r[k] for r in runner.rates])) for k in RATE_KEYS})
         print('(% of scored ground-truth pixels with error > N px; mae in px)')
-    print(f'{args.out}: {sync.pairs} pairs of {topics["left"]} + {topics["right"]} processed '
-          f'({", ".join(sorted(runner.conns))} written); images without a twin skipped: '
-          f'left {sync.dropped_left}, right {sync.dropped_right}')
+    print(f'{args.out}: {runner.processed} pairs of {topics["left"]} + {topics["right"]} '
+          f'processed ({", ".join(sorted(runner.conns))} written), {runner.skipped} skipped; '
+          f'images without a twin skipped: left {sync.dropped_left}, right {sync.dropped_right}')
 
 
 # ---- play -------------------------------------------------------------------------------
@@ -525,6 +569,7 @@ def play(args):
                       if c.msgtype in IMAGE_TYPES and c.topic in publishers
                       and '/gt/' not in c.topic]
             wait_for_subscribers(images, args.wait_subscribers)
+            segment, too_large = shm_segment_bytes(), set()
             while True:
                 start = None
                 for conn, timestamp, raw in read_messages(reader, args.inp):
@@ -535,6 +580,14 @@ def play(args):
                     delay = start[1] + (timestamp - start[0]) / 1e9 / args.rate - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
+                    if len(raw) > segment and conn.topic not in too_large:
+                        too_large.add(conn.topic)
+                        print(f'{PROG} play: warning: {conn.topic} has messages of '
+                              f'{len(raw) / (1 << 20):.1f} MiB, more than the '
+                              f'{segment / (1 << 20):g} MiB Fast DDS shared-memory segment '
+                              '(FASTRTPS_DEFAULT_PROFILES_FILE): subscribers on this host will '
+                              'likely lose them; raise segment_size in the profile',
+                              file=sys.stderr)
                     publishers[conn.topic].publish(bytes(raw))  # serialized CDR, published as is
                 if start is None:
                     raise ValueError(f'{args.inp}: no message to play')

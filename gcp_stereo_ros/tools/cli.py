@@ -6,11 +6,23 @@ A tool's `main(argv=None)` is decorated with `console_main(prog)`: it then retur
 a bad value: ValueError, OSError and the tool's own `errors`) becomes one line on stderr,
 `prog: error: message`, and exit status 1, as argparse reports bad options (status 2).
 Notes added to the error (`err.add_note`) end the line. Ctrl-C is `prog: interrupted`,
-status 130. Anything else is a bug and keeps its traceback.
+status 130, and SIGTERM `prog: terminated`, status 143, both raised in the main thread so
+that every `finally` (a bag's staging folder, say) runs first. Anything else is a bug and
+keeps its traceback.
 """
 import argparse
 import functools
+import signal
 import sys
+import threading
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised like KeyboardInterrupt."""
+
+
+def _terminate(signum, frame):
+    raise Terminated
 
 
 def console_main(prog, errors=()):
@@ -18,6 +30,8 @@ def console_main(prog, errors=()):
     def decorate(main):
         @functools.wraps(main)
         def entry(argv=None):
+            main_thread = threading.current_thread() is threading.main_thread()
+            previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
             try:
                 status = main(argv)
             except (ValueError, OSError, *errors) as err:
@@ -26,6 +40,12 @@ def console_main(prog, errors=()):
             except KeyboardInterrupt as err:
                 _report(f'{prog}: interrupted', err)
                 return 130
+            except Terminated as err:
+                _report(f'{prog}: terminated', err)
+                return 128 + signal.SIGTERM
+            finally:
+                if main_thread:  # None: a handler not set from Python (rclpy's), not restorable
+                    signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
             return 0 if status is None else status
         return entry
     return decorate

@@ -8,26 +8,47 @@ disparity (median, max), the node's RSS over the run (it should stay flat) and i
 time: the whole process, and its executor thread, which takes the images (% of one core).
 `--stamps repeat` sends every pair with one stamp, as a one-frame bag played with --loop
 does (no latency then: the stamps do not tell the pairs apart).
+
+With --steps it walks the node through image sizes and disparity ranges instead: a step
+WxH:D sets max_disparity to D, publishes the pair resized to WxH once and waits for its
+disparity or the node's refusal; `idle` waits 3 s (the node lets its arrays go after 2 s
+without input). After each step it prints the node's RSS and its peak during the step
+(/proc/<pid>/status; the peak is reset through /proc/<pid>/clear_refs, Linux only) beside
+the pipeline's estimate for the pair (`memory_bytes`), which the node compares with
+memory_limit_mb. With --steps and --pipeline it measures a StereoPipeline in this process,
+without ROS: per step the peak RSS of a second pair of that size above the process without
+kept arrays, as a stream of such pairs needs it, against the estimate.
 """
 import argparse
 import json
 import os
 from pathlib import Path
+import re
 import statistics
 import sys
 import threading
 import time
 
+import cv2
+import yaml
+
+from .bag import wait_for_subscribers
 from .cli import console_main, positive
 from ..evaluation.datasets import list_frames, load_frame
 from ..ros.graph import peer_graph
 from ..ros.messages import stamp_ns
+from ..ros.params import config_from_params
 from ..ros.rosimage import array_to_image_fields
+from ..stereo.pipeline import memory_bytes, MIB, mmap_large_arrays, StereoPipeline
+
+IDLE_SECONDS = 3.0
+ANSWER_SECONDS = 600.0
 
 
-def rss_mb(pid):
+def rss_mb(pid, key='VmRSS'):
+    """Return the resident memory of process `pid` in MiB (`key` 'VmHWM': its peak)."""
     for line in Path(f'/proc/{pid}/status').read_text().splitlines():
-        if line.startswith('VmRSS:'):
+        if line.startswith(key + ':'):
             return int(line.split()[1]) / 1024.0
     return float('nan')
 
@@ -47,6 +68,13 @@ def node_param(text):
     return name, value
 
 
+def step_arg(text):
+    """Argparse type: 'idle' or WxH:D, e.g. 1920x1080:256."""
+    if not re.fullmatch(r'idle|[0-9]+x[0-9]+:[0-9]+', text):
+        raise argparse.ArgumentTypeError(f"expected 'idle' or WIDTHxHEIGHT:D, got {text!r}")
+    return text
+
+
 @console_main('gcp-stereo-load')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-load', description=__doc__,
@@ -62,10 +90,21 @@ def main(argv=None):
                     metavar='NAME:=VALUE',
                     help='node parameter, as with --ros-args -p; repeatable')
     ap.add_argument('--json', type=Path)
+    ap.add_argument('--steps', nargs='+', type=step_arg, metavar='WxH:D|idle',
+                    help='walk the node through these sizes and disparity ranges and report '
+                         'its memory, e.g. 640x480:128 idle 1920x1080:256 idle')
+    ap.add_argument('--pipeline', action='store_true',
+                    help='with --steps: measure a StereoPipeline in this process instead')
     args = ap.parse_args(argv)
 
     frame = load_frame(args.dataset, args.frame or list_frames(args.dataset)[0])
     params = {'max_disparity': frame.max_disp, **dict(args.param)}
+    if args.steps:
+        values = {k: yaml.safe_load(str(v)) for k, v in params.items()}  # as rcl reads them
+        if args.pipeline:
+            return _walk_pipeline(args.steps, frame, values)
+        with peer_graph('gcp_stereo_load', params) as (peer, node):
+            return _walk_node(args.steps, frame, values, peer, node.pid)
     with peer_graph('gcp_stereo_load', params) as (peer, node):
         report = _measure(args, frame, peer, node)
     for key, value in report.items():
@@ -144,6 +183,103 @@ def _measure(args, frame, peer, node):
         'rss_mb': [round(r, 1) for r in rss], 'node_cpu_percent': round(cpu[0], 1),
         'executor_cpu_percent': round(cpu[1], 1),
     }
+
+
+def _step(step, values):
+    """Return ((width, height), the config of `values` at the step's D) of a step WxH:D."""
+    size, d = step.split(':')
+    return (tuple(map(int, size.split('x'))),
+            config_from_params({**values, 'max_disparity': int(d)}))
+
+
+def _resized(frame, size):
+    return [cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in (frame.left, frame.right)]
+
+
+def _walk_pipeline(steps, frame, values):
+    mmap_large_arrays()  # as the node does
+    pipeline = StereoPipeline(config_from_params(values))
+    pipeline.with_config(pipeline.config.replace(max_disp=16))(
+        *_resized(frame, (64, 48)))  # first calls of Numba and torch
+    print(f'{"step":<16}{"peak MB":>9}{"estimate MB":>13}{"ratio":>7}')
+    for step in (s for s in steps if s != 'idle'):
+        size, config = _step(step, values)
+        pipeline = pipeline.with_config(config)
+        pair = _resized(frame, size)
+        pipeline.release()
+        base = rss_mb('self')
+        estimate = memory_bytes(config, size[1], size[0]) / MIB
+        try:
+            pipeline(*pair)
+        except ValueError as err:
+            print(f'{step:<16}{"refused":>9}{estimate:13.0f}  {err}', flush=True)
+            continue
+        Path('/proc/self/clear_refs').write_text('5')  # peak := current RSS
+        pipeline(*pair)
+        peak = rss_mb('self', 'VmHWM') - base
+        print(f'{step:<16}{peak:9.0f}{estimate:13.0f}{estimate / peak:7.2f}', flush=True)
+
+
+def _walk_node(steps, frame, values, peer, pid):
+    from rcl_interfaces.msg import Log
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Image
+    from stereo_msgs.msg import DisparityImage
+
+    pubs = [peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data)
+            for s in ('left', 'right')]
+    done, refusals = [], []
+
+    def on_log(msg):
+        if msg.name.endswith('gcp_stereo_node') and 'memory_limit_mb' in msg.msg:
+            refusals.append(msg.msg)
+    peer.create_subscription(DisparityImage, 'disparity',
+                             lambda m: done.append(stamp_ns(m.header)), 10)
+    peer.create_subscription(Log, '/rosout', on_log, 100)
+    client = peer.create_client(SetParameters, 'gcp_stereo_node/set_parameters')
+    if not client.wait_for_service(timeout_sec=120):
+        raise TimeoutError('the node did not come up within 120 s')
+
+    def set_max_disparity(d):
+        future = client.call_async(SetParameters.Request(
+            parameters=[Parameter('max_disparity', value=d).to_parameter_msg()]))
+        while not future.done():
+            time.sleep(0.01)
+
+    def send(size):
+        """Publish the pair at `size` and wait for the node's answer: 'published' or 'refused'."""
+        stamp, seen = time.time_ns(), len(refusals)
+        for pub, image in zip(pubs, _resized(frame, size)):
+            fields = array_to_image_fields(image, 'rgb8' if image.ndim == 3 else 'mono8')
+            msg = Image(**{**fields, 'data': fields['data'].tobytes()})
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+            pub.publish(msg)
+        end = time.monotonic() + ANSWER_SECONDS
+        while time.monotonic() < end:
+            if stamp in done:
+                return 'published'
+            if len(refusals) > seen:
+                return 'refused'
+            time.sleep(0.05)
+        raise TimeoutError(f'no answer from the node within {ANSWER_SECONDS:g} s')
+
+    wait_for_subscribers(pubs, 120)
+    print(f'{"step":<16}{"outcome":<11}{"RSS MB":>8}{"peak MB":>9}{"estimate MB":>13}')
+    print(f'{"start":<16}{"":<11}{rss_mb(pid):8.0f}')
+    for step in steps:
+        Path(f'/proc/{pid}/clear_refs').write_text('5')  # peak := current RSS
+        estimate, outcome = '', ''
+        if step == 'idle':
+            time.sleep(IDLE_SECONDS)
+        else:
+            size, config = _step(step, values)
+            set_max_disparity(config.max_disp)
+            estimate = f'{memory_bytes(config, size[1], size[0]) / MIB:13.0f}'
+            outcome = send(size)
+        print(f'{step:<16}{outcome:<11}{rss_mb(pid):8.0f}{rss_mb(pid, "VmHWM"):9.0f}{estimate}',
+              flush=True)
 
 
 if __name__ == '__main__':

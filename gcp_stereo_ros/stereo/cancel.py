@@ -1,0 +1,38 @@
+"""Stopping a run from another thread: a flag the kernels read once per row."""
+import numpy as np
+
+
+class Cancelled(Exception):
+    """A run stopped because its CancelFlag was set."""
+
+
+class CancelFlag:
+    """
+    A flag that one thread sets to stop a run in another.
+
+    The Numba kernels take `array` (one uint8) and skip their remaining rows once it is 1;
+    they release the GIL, so the setting thread runs meanwhile. Between stages the pipeline
+    calls `check`. A flag stays set until `clear`.
+    """
+
+    def __init__(self):
+        self.array = np.zeros(1, np.uint8)
+
+    def set(self):  # noqa: A003 (the threading.Event name)
+        self.array[0] = 1
+
+    def clear(self):
+        self.array[0] = 0
+
+    def is_set(self):
+        return bool(self.array[0])
+
+    def check(self):
+        """Raise Cancelled if the flag is set."""
+        if self.array[0]:
+            raise Cancelled('cancelled')
+
+
+def flag_array(cancel):
+    """Return the array the kernels read for `cancel`, a CancelFlag or None (never set)."""
+    return (cancel or CancelFlag()).array
