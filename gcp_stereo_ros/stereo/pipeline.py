@@ -212,10 +212,10 @@ def _memory_terms(cfg, height, width):
 
 def check_memory(cfg, height, width):
     """Raise ValueError if a pair of this size needs more than cfg.memory_limit_mb."""
-    need = memory_bytes(cfg, height, width)
+    fixed, per_disparity = _memory_terms(cfg, height, width)
+    need = fixed + per_disparity * cfg.matched_disp  # memory_bytes, from the same terms
     if need <= cfg.memory_limit_mb * MIB:
         return
-    fixed, per_disparity = _memory_terms(cfg, height, width)
     fits = (cfg.memory_limit_mb * MIB - fixed) // per_disparity * cfg.downsample
     f, nd = cfg.downsample, cfg.matched_disp
     changes = ([f'lower max_disparity (at most {fits} fits)'] if fits >= 1 else []) + (
