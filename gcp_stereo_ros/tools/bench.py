@@ -6,10 +6,10 @@ stage runs once to warm up (Numba compilation, torch kernels), then `--repeat` t
 median is reported, with its ratio to OpenCV's time on the same images. Machines are noisy:
 read the ratios, not the absolute seconds.
 
-The default pipeline runs end to end on the CPU as is and in bf16, with `downsample` 2 (as
-is and in bf16) and 4; with a CUDA GPU also on it (`device: cuda`, transfers included, as is
-and in bf16), with its stages as `cuda_<stage>`. Without one it says why and measures no
-CUDA figure.
+The default pipeline (bf16 'auto') runs end to end on the CPU as is and in fp32, with
+`downsample` 2 (as is and in fp32) and 4; with a CUDA GPU also on it (`device: cuda`,
+transfers included, as is and in fp32), with its stages as `cuda_<stage>`. Without one it
+says why and measures no CUDA figure.
 """
 import argparse
 import json
@@ -89,15 +89,15 @@ def main(argv=None):
           f'repeat {args.repeat}')
     seconds = volume_stage_seconds(left, right, nd, args.repeat)
     pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
-    print(f"pipeline: the defaults; bf16 'auto' would be {bf16_native()} here")
-    variants = {'pipeline': {}, 'pipeline_bf16': {'bf16': True},
+    print(f"pipeline: the defaults; bf16 'auto' is {bf16_native()} here")
+    variants = {'pipeline': {}, 'pipeline_fp32': {'bf16': False},
                 'pipeline_downsample2': {'downsample': 2},
-                'pipeline_downsample2_bf16': {'downsample': 2, 'bf16': True},
+                'pipeline_downsample2_fp32': {'downsample': 2, 'bf16': False},
                 'pipeline_downsample4': {'downsample': 4}}
     try:
         gpu.check_device('cuda')
         variants.update(cuda_pipeline={'device': 'cuda'},
-                        cuda_pipeline_bf16={'device': 'cuda', 'bf16': True})
+                        cuda_pipeline_fp32={'device': 'cuda', 'bf16': False})
     except ValueError as err:
         print(f'CUDA stages not measured: {err}')
     breakdown = {}
@@ -106,7 +106,7 @@ def main(argv=None):
         seconds[name], breakdown[name] = median_pipeline(pipe, left, right, args.repeat)
         if name == 'cuda_pipeline':  # every CUDA stage: upload, cnn, ..., download
             seconds.update({f'cuda_{k}': v for k, v in breakdown[name].items()})
-        elif name in ('pipeline', 'pipeline_bf16'):
+        elif name in ('pipeline', 'pipeline_fp32'):
             for stage in ('cnn', 'confidence', 'refine'):
                 seconds[stage + name[len('pipeline'):]] = breakdown[name][stage]
     peer = seconds['opencv_sgbm_hh']
