@@ -98,6 +98,7 @@ def test_kitti_calibration(frames):
     f = frames['kitti2012/000070_10']
     assert f.focal_px == pytest.approx(718.856)
     assert f.baseline_m == pytest.approx(386.1448 / 718.856)
+    assert f.principal_px == pytest.approx((607.1928, 185.2157)) and f.doffs_px == 0
     assert frames['middlebury_v2/cones'].focal_px is None
 
 
@@ -137,6 +138,7 @@ def test_kitti2015_layout(tmp_path):
     assert f.gt[1, 2] == 5.5 and f.valid.sum() == 1 and np.isnan(f.gt[0, 0])
     assert f.max_disp == 128
     assert f.focal_px == 721.5 and f.baseline_m == pytest.approx((44.9 + 339.5) / 721.5)
+    assert f.principal_px == (609.6, 172.9) and f.doffs_px == 0
 
 
 MIDDEVAL3 = Path('middeval3/MiddEval3')
@@ -193,6 +195,15 @@ def test_middeval3_calib(tmp_path, data_dir):
     (scene / 'calib.txt').write_text('ndisp=many\n')
     with pytest.raises(ValueError, match='calib.txt: ndisp=many is not an integer'):
         load_frame(scene, 'Motorcycle')
+    (scene / 'calib.txt').write_text('cam0=[999 0 294; 0 999 252]\n'
+                                     'cam1=[999 0 326; 0 999 252; 0 0 1]\nbaseline=193.001\n')
+    with pytest.raises(ValueError, match='cam0, cam1 or baseline is not a 3x3 matrix'):
+        load_frame(scene, 'Motorcycle')
+    (scene / 'calib.txt').write_text('cam0=[999 0 294; 0 999 252; 0 0 1]\n'
+                                     'cam1=[999 0 326; 0 999 252; 0 0 1]\nbaseline=193.001\n')
+    f = load_frame(scene, 'Motorcycle')
+    assert (f.focal_px, f.principal_px, f.doffs_px) == (999, (294, 252), 32)
+    assert f.baseline_m == 0.193001
 
 
 def test_kitti2015_occluded_ground_truth_only(kitti_occ_only, data_dir):

@@ -41,6 +41,8 @@ class Frame:
     gt_right: np.ndarray | None = None
     focal_px: float | None = None
     baseline_m: float | None = None
+    principal_px: tuple | None = None  # (cx, cy) of the left camera; None = the image centre
+    doffs_px: float = 0.0  # right cx - left cx (Middlebury's doffs): depth = f B / (d + doffs)
     # How the scoring departs from the benchmark's own, for reports (e.g. occluded pixels
     # included because the frame has no non-occluded ground truth); None when it does not.
     note: str | None = None
@@ -192,23 +194,28 @@ def _motorcycle():
     from skimage.data import stereo_motorcycle
     left, right, gt = stereo_motorcycle()
     gt = np.where(np.isfinite(gt), gt, np.nan).astype(np.float32)
-    return _frame('motorcycle', left, right, gt, 64)
+    # The calibration of these down-sampled images, as stereo_motorcycle's docstring gives it.
+    return _frame('motorcycle', left, right, gt, 64, focal_px=994.978, baseline_m=0.193001,
+                  principal_px=(311.193, 254.877), doffs_px=31.086)
 
 
 def _kitti(training, name, stem, kind, gt_path):
     left, right, (noc, _), *cams = kind
     gt = _disparity(np.array(Image.open(gt_path)), 256.0)
-    focal, baseline = _kitti_calib(training, stem.split('_')[0], cams)
+    calib = _kitti_calib(training, stem.split('_')[0], cams)
     occ = gt_path.parent.name
     return _frame(name, _image(training / left / f'{stem}.png'),
-                  _image(training / right / f'{stem}.png'), gt, _KITTI_MAX_DISP,
-                  focal_px=focal, baseline_m=baseline,
+                  _image(training / right / f'{stem}.png'), gt, _KITTI_MAX_DISP, **calib,
                   note=None if occ == noc else f'scored on {occ} (occluded pixels included): '
                                                f'no {noc}/{stem}.png')
 
 
 def _kitti_calib(training, frame_id, cams):
-    """(focal px, baseline m) from the projection matrices of the two cameras, if shipped."""
+    """
+    Return the Frame fields of the two cameras' projection matrices, if shipped, else {}.
+
+    focal_px, baseline_m, principal_px and doffs_px.
+    """
     for path, key in ((training / 'calib' / f'{frame_id}.txt', 'P{}'),
                       (training / 'calib_cam_to_cam' / f'{frame_id}.txt', 'P_rect_0{}')):
         if path.is_file():
@@ -216,8 +223,11 @@ def _kitti_calib(training, frame_id, cams):
                         for line in path.read_text().splitlines() if ':' in line)
             pl, pr = (np.array(rows[key.format(c)].split(), dtype=float).reshape(3, 4)
                       for c in cams)
-            return float(pr[0, 0]), float((pl[0, 3] - pr[0, 3]) / pr[0, 0])
-    return None, None
+            return {'focal_px': float(pr[0, 0]),
+                    'baseline_m': float((pl[0, 3] - pr[0, 3]) / pr[0, 0]),
+                    'principal_px': (float(pl[0, 2]), float(pl[1, 2])),
+                    'doffs_px': float(pr[0, 2] - pl[0, 2])}
+    return {}
 
 
 def _middlebury_v2(folder, name):
@@ -246,31 +256,50 @@ def _middeval3(folder, name):
     Middlebury 2014 (MiddEval3) and ETH3D two-view scenes.
 
     Scored on mask0nocc.png == 255 (non-occluded) when present; max_disp is calib.txt's ndisp
-    rounded up to a multiple of 16, or from the ground truth without one.
+    rounded up to a multiple of 16, or from the ground truth without one; the cameras'
+    calibration from calib.txt too, where it has it.
     """
     gt = _pfm(folder / 'disp0GT.pfm')
     mask_path, gt_r = folder / 'mask0nocc.png', folder / 'disp1GT.pfm'
     mask = _gray8(mask_path) == 255 if mask_path.is_file() else None
-    ndisp = _ndisp(folder / 'calib.txt')
+    ndisp, calibration = _calib_txt(folder / 'calib.txt')
     notes = ([] if mask is not None else
              ['no mask0nocc.png: scored on every pixel with ground truth, occluded ones included'])
     if ndisp is None:
         notes.append('no ndisp in calib.txt: max_disp from the largest ground-truth disparity')
     return _frame(name, _image(folder / 'im0.png'), _image(folder / 'im1.png'), gt,
                   _above(gt) if ndisp is None else _up16(ndisp), mask=mask,
-                  gt_right=_pfm(gt_r) if gt_r.is_file() else None, note='; '.join(notes) or None)
+                  gt_right=_pfm(gt_r) if gt_r.is_file() else None, note='; '.join(notes) or None,
+                  **calibration)
 
 
-def _ndisp(path):
-    """Return `ndisp=` of a Middlebury or ETH3D calib.txt; None without the file or the key."""
+def _calib_txt(path):
+    """
+    Return (ndisp, calibration) of a Middlebury or ETH3D calib.txt.
+
+    ndisp: `ndisp=`, None without the file or the key. calibration: the Frame fields
+    focal_px, baseline_m, principal_px, doffs_px from `cam0=`, `cam1=` (3x3 matrices as
+    `[f 0 cx; 0 f cy; 0 0 1]`) and `baseline=` (mm), or {} without them.
+    """
     lines = path.read_text().splitlines() if path.is_file() else []
-    for key, _, value in (line.partition('=') for line in lines):
-        if key.strip() == 'ndisp':
-            try:
-                return int(value)
-            except ValueError:
-                raise ValueError(f'{path}: ndisp={value.strip()} is not an integer') from None
-    return None
+    keys = {key.strip(): value.strip()
+            for key, _, value in (line.partition('=') for line in lines)}
+    try:
+        ndisp = int(keys['ndisp']) if 'ndisp' in keys else None
+    except ValueError:
+        raise ValueError(f'{path}: ndisp={keys["ndisp"]} is not an integer') from None
+    if not {'cam0', 'cam1', 'baseline'} <= keys.keys():
+        return ndisp, {}
+    try:
+        k0, k1 = (np.array(keys[c].strip('[]').replace(';', ' ').split(), float).reshape(3, 3)
+                  for c in ('cam0', 'cam1'))
+        baseline = float(keys['baseline']) / 1000
+    except ValueError:
+        raise ValueError(f'{path}: cam0, cam1 or baseline is not a 3x3 matrix or a number '
+                         f'({keys["cam0"]!r}, {keys["cam1"]!r}, {keys["baseline"]!r})') from None
+    return ndisp, {'focal_px': float(k0[0, 0]), 'baseline_m': baseline,
+                   'principal_px': (float(k0[0, 2]), float(k0[1, 2])),
+                   'doffs_px': float(k1[0, 2] - k0[0, 2])}
 
 
 def _aloe(folder, name, left, right, gt):

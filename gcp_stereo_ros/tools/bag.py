@@ -12,8 +12,9 @@ frame's stamp as header stamp and as bag timestamp, the ground truth written fir
                                        --compressed: left/image_rect/compressed, ...,
                                        sensor_msgs/CompressedImage, png or jpeg)
   left/camera_info, right/camera_info  sensor_msgs/CameraInfo; when the dataset knows them, f in
-                                       K and P and P_right[3] = -f * baseline (principal point
-                                       at the image centre), else K = P = 0 (uncalibrated)
+                                       K and P, P_right[3] = -f * baseline and the principal
+                                       points (KITTI, Motorcycle; else the image centre), else
+                                       K = P = 0 (uncalibrated)
   gt/disparity                         sensor_msgs/Image 32FC1, left disparity in px, 0 = unknown
   gt/valid                             sensor_msgs/Image mono8, 255 = pixel scored (ground truth
                                        known and inside the dataset's mask, e.g. non-occluded)
@@ -198,12 +199,17 @@ def camera_info(header, frame, side):
     """
     Return the CameraInfo of a rectified camera of `frame`.
 
-    K = P = 0 unless the focal length is known.
+    K = P = 0 unless the focal length is known; the principal point is the image centre
+    unless the frame gives it.
     """
     h, w = frame.left.shape[:2]
     f = frame.focal_px or 0.0
-    tx = -f * (frame.baseline_m or 0.0) if side == 'right' else 0.0
-    p = np.array([f, 0, w / 2, tx, 0, f, h / 2, 0, 0, 0, 1, 0], float) if f else np.zeros(12)
+    cx, cy = frame.principal_px or (w / 2, h / 2)
+    if side == 'right':
+        tx, cx = -f * (frame.baseline_m or 0.0), cx + frame.doffs_px
+    else:
+        tx = 0.0
+    p = np.array([f, 0, cx, tx, 0, f, cy, 0, 0, 0, 1, 0], float) if f else np.zeros(12)
     return TYPES.CameraInfo(
         header=header, height=h, width=w, distortion_model='plumb_bob', d=np.zeros(5),
         k=p.reshape(3, 4)[:, :3].ravel(), r=np.eye(3).ravel(), p=p, binning_x=0, binning_y=0,

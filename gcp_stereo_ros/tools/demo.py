@@ -79,10 +79,12 @@ def main(argv=None):
             disp_msg = got['disparity'][i]
             disp = image_to_array(disp_msg.image)
             disp[disp < disp_msg.min_disparity] = np.nan
+            # The message holds d - (cx_left - cx_right) (min_disparity is d = 0): back to d.
+            disp -= disp_msg.min_disparity
             gcp = image_to_array(got['gcp_mask'][i]) > 0
             stem = name.replace('/', '_')
             save_png(args.out / f'{stem}_disparity.png',
-                     colorize(disp, disp_msg.max_disparity + 1))
+                     colorize(disp, disp_msg.max_disparity - disp_msg.min_disparity + 1))
             save_png(args.out / f'{stem}_gcp_mask.png', mask_image(gcp))
             rows.append((name, error_rates(disp, frame.gt, frame.valid), 100 * gcp.mean()))
     print(f'\n{"frame":<22}{"bad1":>7}{"bad2":>7}{"bad3":>7}{"bad5":>7}{"mae":>7}'
