@@ -41,13 +41,20 @@ def test_model_geometry_and_q():
     (info(), right(tx=F * 0.1), 'baseline T .* = -0.1 is not positive'),
     (info(p=(F, 0, np.nan, 0, 0, F, 40, 0, 0, 0, 1, 0)), right(), 'P is not finite'),
     (info(width=640, height=480), right(), 'for 640x480 images, the images are 120x80'),
-    (info(), right(cx=360), 'principal points are -300 px apart .* not within max_disparity 64'),
+    (info(), right(cx=-40), 'left principal point is 100 px right of the right one .* not '
+     'below max_disparity 64'),
     (info(p=(1e300, 0, 60, 0, 0, 1e300, 40, 0, 0, 0, 1, 0)),
      info(p=(1e300, 0, 60, -1e299, 0, 1e300, 40, 0, 0, 0, 1, 0)), 'does not fit the float32'),
 ])
 def test_model_says_why_there_is_none(left, right_info, reason):
     with pytest.raises(ValueError, match=reason):
         stereo_model(left, right_info, (H, W), 64)
+
+
+def test_model_takes_any_right_principal_point_further_right():
+    """Middlebury's doffs: cx_right - cx_left > 0 adds to every disparity, all in front."""
+    model = stereo_model(info(), right(cx=360), (H, W), 64)
+    assert model.cx_offset == -300 and (model.depth(np.float32([[0.0, 63.0]])) > 0).all()
 
 
 def test_rectifier_models_and_refusals():

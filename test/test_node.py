@@ -22,6 +22,7 @@ from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import (array_to_compressed_fields, array_to_image_fields,
                                          image_to_array)
 from gcp_stereo_ros.ros.worker import NewestWorker
+from gcp_stereo_ros.stereo.cnn import bf16_native
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest
@@ -465,6 +466,13 @@ def test_diagnostics_say_what_is_wrong(harness, pair):
             'latency s (stamp to publish), mean', 'images dropped unmatched, left', 'errors',
             'device', 'weights'} <= set(values)
     assert (values['device'], values['left topic']) == ('cpu', '/left/image_rect')
+    assert values['CNN descriptors'] == 'not used'  # the harness runs without GCPs
+    for changes, precision in (({'use_gcp': True}, 'bfloat16' if bf16_native() else 'float32'),
+                               ({'bf16': False}, 'float32'), ({'bf16': True}, 'bfloat16'),
+                               ({'use_gcp': False, 'bf16': 'auto'}, 'not used')):
+        assert all(r.successful for r in harness.set_params(changes))
+        values = {kv.key: kv.value for kv in harness.node.diagnostics.status().values}
+        assert values['CNN descriptors'] == precision, changes
 
     def warned(*words):
         return any(status_of(d)[0].level == DiagnosticStatus.WARN
@@ -614,7 +622,7 @@ def test_bad_camera_info_is_said_and_ignored(harness, pair):
     cases = [  # (side, P index or field, value, reason)
         ('right', 2, float('nan'), 'P is not finite'),
         ('right', 3, 0.0, 'baseline T = -P_right[0,3] / P_right[0,0] = 0 is not positive'),
-        ('right', 2, left.shape[1] / 2 + 300, 'principal points are -300 px apart'),
+        ('right', 2, left.shape[1] / 2 - 300, 'left principal point is 300 px right of the right'),
         ('left', 0, 1e300, 'does not fit the float32'),
         ('right', 'height', left.shape[0] + 2, 'right camera_info is for 247x169 images'),
     ]

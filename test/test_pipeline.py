@@ -250,7 +250,7 @@ def test_memory_estimate_bounds_the_measured_peak(motorcycle):
     """
     mmap_large_arrays()  # as the node and the bag tool do
     left, right, _ = motorcycle
-    pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=96))
+    pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=96, bf16=False))
     pipe(left[:64, :128], right[:64, :128])  # first calls of everything
     pipe.release()
     base = rss_mb()

@@ -18,6 +18,7 @@ import threading
 import time
 from types import ModuleType, SimpleNamespace
 
+from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.ros.node import GcpStereoNode
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import image_to_array
@@ -163,13 +164,16 @@ def test_bag_run_takes_a_dump_file(graph, tmp_path):
                            str(bag_in), '--out', str(bag_out), '--params', str(dumped)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    from skimage import data
-    left, right, _ = data.stereo_motorcycle()
-    want = StereoPipeline(config_from_params(g.node.params.values))(left, right).disparity
+    frame = load_frame('motorcycle', 'motorcycle')
+    pipeline = StereoPipeline(config_from_params(g.node.params.values))
+    want = pipeline(frame.left, frame.right).disparity
     with bag.open_bag(bag_out) as reader:
         disp, = (bag.deserialize(raw, c, t, bag_out) for c, t, raw in reader.messages()
                  if c.topic == '/disparity')
-    np.testing.assert_array_equal(image_to_array(disp.image), np.where(np.isnan(want), -1, want))
+    low = np.float32(frame.doffs_px)  # published: d - (cx_left - cx_right), calibrated bag
+    assert disp.min_disparity == low and disp.f > 0
+    np.testing.assert_array_equal(image_to_array(disp.image),
+                                  np.where(np.isnan(want), low - 1, want + low))
     assert g.node.params.pipeline.config.p2 == 20.0
 
 

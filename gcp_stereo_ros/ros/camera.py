@@ -82,9 +82,10 @@ def stereo_model(left_info, right_info, shape, max_disp):
     Return the StereoModel of the two CameraInfos for images of `shape` (H, W[, C]).
 
     Raises ValueError saying why there is none: a missing camera_info, no projection P
-    (uncalibrated), a zero or negative baseline, a size other than the images', principal
-    points `max_disp` or more px apart (no searched disparity would be a geometric one), or
-    f or T beyond the float32 fields of stereo_msgs/DisparityImage.
+    (uncalibrated), a zero or negative baseline, a size other than the images', a left
+    principal point `max_disp` or more px right of the right one (no searched disparity
+    would be in front of the cameras), or f or T beyond the float32 fields of
+    stereo_msgs/DisparityImage.
     """
     for side, info in (('left', left_info), ('right', right_info)):
         if info is None:
@@ -98,9 +99,9 @@ def stereo_model(left_info, right_info, shape, max_disp):
         raise ValueError(f'baseline T = -P_right[0,3] / P_right[0,0] = {baseline:g} is not '
                          'positive: the right camera_info P[0,3] must be -fx * baseline')
     model = StereoModel(pl[0, 0], pl[1, 1], pl[0, 2], pl[1, 2], pr[0, 2], baseline)
-    if not abs(model.cx_offset) < max_disp:
-        raise ValueError(f'the principal points are {model.cx_offset:g} px apart (left cx - '
-                         f'right cx), not within max_disparity {max_disp}')
+    if not model.cx_offset < max_disp:  # d - cx_offset > 0 for no searched d: no depth
+        raise ValueError(f'the left principal point is {model.cx_offset:g} px right of the '
+                         f'right one (left cx - right cx), not below max_disparity {max_disp}')
     if not max(model.fx, baseline) <= FLOAT32_MAX:
         raise ValueError(f'f {model.fx:g} or baseline {baseline:g} does not fit the float32 '
                          'fields of stereo_msgs/DisparityImage')

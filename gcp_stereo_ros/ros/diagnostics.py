@@ -15,13 +15,22 @@ from rclpy.clock import Clock, ClockType
 NO_PAIR_SECONDS = 5.0  # images arriving this long without a pair -> WARN
 
 
+def cnn_precision(config):
+    """Say how a StereoConfig runs the CNN: 'bfloat16', 'float32' or 'not used'."""
+    if not config.use_gcp:
+        return 'not used'
+    from ..stereo.cnn import resolve_bf16  # torch is loaded already when GCPs are used
+    return 'bfloat16' if resolve_bf16(config.bf16, config.device) else 'float32'
+
+
 class Diagnostics:
     """
     Publish the health of `node` (a GcpStereoNode) on /diagnostics once a second.
 
     Values: images taken per second per side, pairs processed per second, latency from the
     images' stamp to publishing (mean and max over the last second), pairs dropped as stale,
-    images dropped unmatched, errors, device and weights. Level WARN while crossed parameter
+    images dropped unmatched, errors, device, CNN precision (what bf16 'auto' gave) and
+    weights. Level WARN while crossed parameter
     values wait (P1 > P2, c_low > c_hi), when images arrive but no pair has synced for
     NO_PAIR_SECONDS (the message says which topic is missing and why) or when pairs were
     skipped in the last second. (Weights that cannot be loaded stop the node at start-up and
@@ -65,6 +74,7 @@ class Diagnostics:
             'images dropped unmatched, left': str(sync.dropped_left),
             'images dropped unmatched, right': str(sync.dropped_right),
             'errors': str(node.errors), 'device': config.device,
+            'CNN descriptors': cnn_precision(config),
             'weights': config.weights or 'shipped with the package',
             **{f'{side} topic': topic for side, topic in inp.topics().items()},
         }

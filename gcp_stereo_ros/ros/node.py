@@ -40,7 +40,7 @@ from sensor_msgs.msg import Image, PointCloud2, PointField, RegionOfInterest
 from stereo_msgs.msg import DisparityImage
 
 from .camera import Rectifier, stereo_model
-from .diagnostics import Diagnostics
+from .diagnostics import cnn_precision, Diagnostics
 from .live_params import LiveParameters
 from .messages import output_messages, OUTPUTS
 from .params import check_params_files, INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
@@ -105,7 +105,8 @@ class GcpStereoNode(Node):
         self.processed = 0
         self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
         self.diagnostics = Diagnostics(self)
-        self.get_logger().info(f'ready: {self.params.pipeline.config}')
+        config = self.params.pipeline.config
+        self.get_logger().info(f'ready: {config}; CNN descriptors: {cnn_precision(config)}')
 
     @property
     def stale(self):

@@ -17,7 +17,8 @@ have Vol = 0), and the right view's CNN disparity cof_dr(y, xr) = argmax of Vol(
 over d < min(D, W - xr), for GCPs that both views agree on (`gcp.select`). Row y of Vol
 needs only row y of both descriptor images, so both steps run on strips of STRIP_ROWS rows:
 the activations of a strip stay in the CPU caches (measured on a 2-core Zen 4 for a KITTI
-pair: bf16 convolutions 0.79 s for the whole images, 0.54 s in strips of 64 rows) and the
+pair when first written: bf16 autocast convolutions 0.79 s for the whole images, 0.54 s in
+strips of 64 rows) and the
 descriptors of the whole images are never held (2 x 119 MB for a KITTI pair in float32).
 On a GPU (`device_confidence`) the same strips are correlated in torch on the device, as
 batched matrix products over blocks of columns (`_band_best`).
@@ -228,16 +229,23 @@ def bf16_native(device='cpu'):
     """
     Tell whether bfloat16 convolutions run natively on `device` (what bf16 'auto' uses).
 
-    True on CUDA devices with bfloat16 support and on CPUs with avx512_bf16 or AMX (read
-    from /proc/cpuinfo); elsewhere torch emulates bfloat16, slower than float32.
+    True on CUDA devices of compute capability 8.0 or more (Ampere on; torch emulates
+    bfloat16 on older ones) and on CPUs with avx512_bf16 or AMX (read from /proc/cpuinfo);
+    elsewhere bfloat16 runs emulated, slower than float32.
     """
-    if torch.device(device).type == 'cuda':
-        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    device = torch.device(device)
+    if device.type == 'cuda':
+        return torch.cuda.is_available() and torch.cuda.get_device_capability(device)[0] >= 8
     try:
         flags = Path('/proc/cpuinfo').read_text().split()
     except OSError:
         return False
     return 'avx512_bf16' in flags or 'amx_bf16' in flags
+
+
+def resolve_bf16(bf16, device='cpu'):
+    """Return whether the CNN runs in bfloat16 on `device` for `bf16`: True, False or 'auto'."""
+    return bf16_native(device) if bf16 == 'auto' else bool(bf16)
 
 
 def network_input(*grays):
@@ -278,12 +286,14 @@ def _first_layer_bf16(conv, x):
     Return conv(x) in bfloat16 with the accuracy of float32 input and weights.
 
     bfloat16 keeps 8 significant bits: rounding the standardized image to it is noise of
-    the size of a gray level's step, different in the two images, and it moved the error
-    rates by up to 0.15 point on validation frames (rounding the later layers' activations
-    and weights moves them by less than 0.07). So x = x_hi + x_lo and w = w_hi + w_lo, each
-    part bfloat16, and x * w ~ x_hi w_hi + x_lo w_hi + x_hi w_lo (the dropped term is at
-    most about 2^-16 of it): one bfloat16 convolution of 3 input channels, accumulated in
-    float32, faster than the 1-channel float32 one.
+    the size of a gray level's step, different in the two images. With every layer under
+    autocast the defaults' error rates moved by up to 0.15 point on a validation frame; with
+    this first layer (the others under autocast) by 0.061 at most, about the noise of any
+    change of rounding (the first layer in float32 gave 0.095; README, "bf16"). So
+    x = x_hi + x_lo and w = w_hi + w_lo, each part bfloat16, and
+    x * w ~ x_hi w_hi + x_lo w_hi + x_hi w_lo (the dropped term is at most about 2^-16 of
+    it): one bfloat16 convolution of 3 input channels, accumulated in float32, faster than
+    the 1-channel float32 one.
     """
     def split(t):
         hi = t.bfloat16()
@@ -291,7 +301,8 @@ def _first_layer_bf16(conv, x):
 
     (x_hi, x_lo), (w_hi, w_lo) = split(x), split(conv.weight.float())
     parts = torch.cat([x_hi, x_lo, x_hi], 1).contiguous(memory_format=torch.channels_last)
-    return F.conv2d(parts, torch.cat([w_hi, w_hi, w_lo], 1), conv.bias.bfloat16())
+    return F.conv2d(parts, torch.cat([w_hi, w_hi, w_lo], 1), conv.bias.bfloat16(), conv.stride,
+                    conv.padding, conv.dilation)
 
 
 def _band_best(fa, fb, max_disp):
@@ -328,7 +339,7 @@ def device_confidence(net, x, max_disp, bf16=False, seconds=None):
     """
     h, w = x.shape[2] - 2 * PAD, x.shape[3] - 2 * PAD
     check_max_disp(max_disp, w)
-    bf16 = bf16_native(x.device) if bf16 == 'auto' else bf16
+    bf16 = resolve_bf16(bf16, x.device)
     cof_c = torch.empty((h, w), dtype=torch.float32, device=x.device)
     cof_d = torch.empty((h, w), dtype=torch.int32, device=x.device)
     cof_dr = torch.empty((h, w), dtype=torch.int32, device=x.device)
@@ -382,7 +393,7 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     h, w = lg.shape
     check_max_disp(max_disp, w)
     max_disp = int(max_disp)
-    bf16 = bf16_native(device) if bf16 == 'auto' else bf16
+    bf16 = resolve_bf16(bf16, device)
     x = network_input(lg, rg).to(device)
     if x.device.type != 'cpu' and not volume:
         return tuple(a.cpu().numpy() for a in device_confidence(net, x, max_disp, bf16, seconds))

@@ -13,8 +13,9 @@ frame's stamp as header stamp and as bag timestamp, the ground truth written fir
                                        sensor_msgs/CompressedImage, png or jpeg)
   left/camera_info, right/camera_info  sensor_msgs/CameraInfo; when the dataset knows them, f in
                                        K and P, P_right[3] = -f * baseline and the principal
-                                       points (KITTI, Motorcycle; else the image centre), else
-                                       K = P = 0 (uncalibrated)
+                                       points (KITTI calib files, MiddEval3/ETH3D calib.txt,
+                                       Motorcycle; else the image centre), else K = P = 0
+                                       (uncalibrated)
   gt/disparity                         sensor_msgs/Image 32FC1, left disparity in px, 0 = unknown
   gt/valid                             sensor_msgs/Image mono8, 255 = pixel scored (ground truth
                                        known and inside the dataset's mask, e.g. non-occluded)

@@ -147,7 +147,7 @@ def add_options(ap, dataset_required=True):
                     help='parameter values before --set: the cross-validated defaults or '
                          "the paper's (Table 1's paper rows)")
     ap.add_argument('--set', action='append', metavar='KEY=VALUE',
-                    help='override a pipeline parameter (e.g. theta=0.7, bf16=true); repeatable')
+                    help='override a pipeline parameter (e.g. theta=0.7, bf16=false); repeatable')
     ap.add_argument('--json', type=Path, help='write one row per (method, frame) to this file')
 
 
@@ -173,6 +173,10 @@ def evaluate_frame(runner, args, source, name):
         disp, _, seconds = runner.run(method, frame.left, frame.right, max_disp)
         rows.append({'method': method, 'frame': name, **error_rates(disp, frame.gt, frame.valid),
                      'seconds': seconds})
+        if method == 'cnn' or method.endswith('+gcp'):  # what bf16 'auto' gave, per row
+            from ..stereo.cnn import resolve_bf16
+            cfg = runner.config('census+gcp' if method == 'cnn' else method, max_disp)
+            rows[-1]['bf16'] = resolve_bf16(cfg.bf16, cfg.device)
         if args.out:
             save_png(args.out / f'{name.replace("/", "_")}_{method}.png', colorize(disp, max_disp))
     return rows, frame.note or ''
@@ -181,6 +185,9 @@ def evaluate_frame(runner, args, source, name):
 def print_results(rows, methods, notes):
     """Print the table of `rows` and the frames' notes ({frame name: note})."""
     print(table(rows, methods))
+    precisions = sorted({r['bf16'] for r in rows if 'bf16' in r})
+    if precisions:
+        print('CNN descriptors:', ' and '.join('bfloat16' if p else 'float32' for p in precisions))
     for name, note in notes.items():
         if note:
             print(f'note: {name}: {note}')
