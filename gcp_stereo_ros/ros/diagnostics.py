@@ -30,11 +30,10 @@ class Diagnostics:
     Values: images taken per second per side, pairs processed per second, latency from the
     images' stamp to publishing (mean and max over the last second), pairs dropped as stale,
     images dropped unmatched, errors, device, CNN precision (what bf16 'auto' gave) and
-    weights. Level WARN while crossed parameter
-    values wait (P1 > P2, c_low > c_hi), when images arrive but no pair has synced for
-    NO_PAIR_SECONDS (the message says which topic is missing and why) or when pairs were
-    skipped in the last second. (Weights that cannot be loaded stop the node at start-up and
-    are refused when set.)
+    weights. Level WARN while crossed parameter values wait (P1 > P2, c_low > c_hi), when
+    images arrive but no pair has synced for NO_PAIR_SECONDS (the message says which topic
+    is missing and why) or when pairs were skipped in the last second. (Weights that cannot
+    be loaded stop the node at start-up and are refused when set.)
     """
 
     def __init__(self, node):

@@ -18,8 +18,8 @@ over d < min(D, W - xr), for GCPs that both views agree on (`gcp.select`). Row y
 needs only row y of both descriptor images, so both steps run on strips of STRIP_ROWS rows:
 the activations of a strip stay in the CPU caches (measured on a 2-core Zen 4 for a KITTI
 pair when first written: bf16 autocast convolutions 0.79 s for the whole images, 0.54 s in
-strips of 64 rows) and the
-descriptors of the whole images are never held (2 x 119 MB for a KITTI pair in float32).
+strips of 64 rows) and the descriptors of the whole images are never held (2 x 119 MB for
+a KITTI pair in float32).
 On a GPU (`device_confidence`) the same strips are correlated in torch on the device, as
 batched matrix products over blocks of columns (`_band_best`).
 
