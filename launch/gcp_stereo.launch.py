@@ -32,7 +32,8 @@ def generate_launch_description():
                         "paper's values)"),
         DeclareLaunchArgument(
             'use_sim_time', default_value='false', choices=['true', 'false'],
-            description='use the /clock topic (e.g. of a bag played with --clock) as time'),
+            description='use the /clock topic as time (e.g. ros2 bag play --clock; '
+                        'gcp-stereo-bag play publishes no /clock)'),
         # A profile the user set already (their own DDS set-up) is kept.
         SetEnvironmentVariable(PROFILES, EnvironmentVariable(
             PROFILES, default_value=os.path.join(share, 'config', 'fastdds.xml'))),

@@ -261,7 +261,9 @@ def test_set_parameters_live(harness, pair):
         ({'census.window': 10}, 'window'),
         ({'census.window': 13}, 'census.window'),
         ({'image_transport': 'theora'}, 'image_transport'),
-        ({'bf16': 'maybe'}, 'bf16'),
+        ({'bf16': 'maybe'}, "bf16 must be true, false or 'auto', got 'maybe'"),
+        ({'bf16': 1}, "bf16 must be true, false or 'auto', got 1"),
+        ({'bf16': 0.0}, 'bf16'),
         ({'downsample': 3}, 'downsample'),
         ({'device': 'cuda:7'}, "device 'cuda:7'"),
     ]:
@@ -450,6 +452,18 @@ def test_no_calibration_gives_one_warning_and_no_depth(harness, pair):
 def status_of(array_msg):
     status, = array_msg.status
     return status, {kv.key: kv.value for kv in status.values}
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False, 'use_sim_time': True}], indirect=True)
+def test_sim_time_without_a_clock_gives_no_latency(harness, pair):
+    """Before a /clock the node's time is 0: the latency was -(the stamp), now it is empty."""
+    left, right = pair
+    diagnostics = harness.listen('/diagnostics', DiagnosticArray)
+    harness.send_pair(left, right, 'rgb8', 1_000_000_000)
+    wait_for(lambda: harness.disparity, 'disparity')
+    wait_for(lambda: any(status_of(d)[1]['pairs processed'] == '1' for d in diagnostics),
+             'diagnostics after one pair')
+    assert {status_of(d)[1]['latency s (stamp to publish), mean'] for d in diagnostics} == {''}
 
 
 @pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
@@ -726,13 +740,18 @@ def cpu_seconds(pid):
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
-@pytest.mark.parametrize('signals', [(signal.SIGINT, signal.SIGINT), (signal.SIGTERM,)])
-def test_node_process_stops_within_2_s_mid_frame(ros, data_dir, signals):
+@pytest.mark.parametrize('signals, gap', [((signal.SIGINT, signal.SIGINT), 0.1),
+                                          ((signal.SIGINT, signal.SIGINT), 0.0),
+                                          ((signal.SIGTERM,), 0.0)])
+def test_node_process_stops_within_2_s_mid_frame(ros, data_dir, signals, gap):
     """
     Stop a node process in the middle of a long frame, by Ctrl-C twice or SIGTERM.
 
-    Aloe at 1282x1110 takes several seconds (fp32 CNN); the node stops it between two rows
-    of a kernel or two CNN layers.
+    Aloe at 1282x1110 takes seconds; the node stops it between two rows of a kernel or two
+    CNN layers. Two Ctrl-C at once are what `ros2 launch` gives (the terminal's, then its
+    own). With the real launch the second one once (1 run of 17) came while the node was
+    already stopping and aborted its exit; that window is too short to hit here on purpose
+    (6 of 6 runs passed before the fix), so this checks the pair stops cleanly.
     """
     frame = load_frame(data_dir, 'middlebury2006/fullsize_opencv-doc/Aloe')
     node = start_node(os.environ, {'max_disparity': 64})
@@ -770,7 +789,7 @@ def test_node_process_stops_within_2_s_mid_frame(ros, data_dir, signals):
         start = time.monotonic()
         for sig in signals:
             node.send_signal(sig)
-            time.sleep(0.1)
+            time.sleep(gap)
         code = node.wait(30)
         seconds = time.monotonic() - start
     finally:

@@ -73,3 +73,13 @@ def test_both_costs_are_checked_whichever_is_chosen():
         config_from_params({'cost': 'census', 'sad.P2': 0.01})
     config = config_from_params({'cost': 'census', 'sad.P2': 20.0, 'census.P2': 30.0})
     assert config.p2 == 30.0
+
+
+@pytest.mark.parametrize('values, reason', [
+    ({'bf16': 1}, "^bf16 must be true, false or 'auto', got 1$"),  # 1 == True, still refused
+    ({'bf16': 'maybe'}, "^bf16 must be true, false or 'auto', got 'maybe'$"),
+    ({'max_disparity': 0}, r'^max_disp must be an integer in \[1, 1024\], got 0$'),
+])
+def test_values_of_neither_cost_are_not_said_of_one(values, reason):
+    with pytest.raises(ValueError, match=reason):
+        config_from_params(values)

@@ -184,7 +184,9 @@ class GcpStereoNode(Node):
             if self.context.ok():
                 self._log('error', f'cannot publish the outputs: {err}', f'stamp {stamp} ns')
             return  # else shutting down while this pair was in flight: nothing to send to
-        self._latency.append((self.get_clock().now().nanoseconds - stamp) / 1e9)
+        now = self.get_clock().now().nanoseconds
+        if now:  # 0: use_sim_time and no /clock yet, no time to compare the stamp with
+            self._latency.append((now - stamp) / 1e9)
         self.processed += 1
         self._log_progress(result.seconds)
 
@@ -246,6 +248,20 @@ def _cannot_start(err):
     return 2
 
 
+def _stop_once(signum, frame):
+    """
+    Stop on the first SIGINT or SIGTERM (KeyboardInterrupt) and ignore every later one.
+
+    Installed before rclpy.init, whose own handlers (which wake the executor) call it after
+    theirs. `ros2 launch` forwards the terminal's Ctrl-C, so the node gets two at once; a
+    second KeyboardInterrupt while stopping would abort the exit (with the worker thread
+    alive, the interpreter then dies in `terminate`).
+    """
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
 def main(args=None):
     argv = sys.argv if args is None else args
     try:
@@ -262,6 +278,8 @@ def main(args=None):
               file=sys.stderr)
         return 2
     node = None
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _stop_once)
     try:
         try:
             mmap_large_arrays()
@@ -273,7 +291,7 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or shutdown, while starting or spinning
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):  # a second Ctrl-C must not abort the exit
+        for sig in (signal.SIGINT, signal.SIGTERM):  # stopping for another reason: the same
             signal.signal(sig, signal.SIG_IGN)
         if node is not None:
             node.destroy_node()

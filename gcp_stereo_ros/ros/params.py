@@ -172,6 +172,9 @@ def config_from_params(values):
     """
     check_names(values)
     values = {n: coerce(n, v) for n, v in values.items()}
+    # The values of neither cost first, so that their errors are not said of a cost.
+    StereoConfig(**{BY_NAME[n].field: v for n, v in values.items()
+                    if BY_NAME[n].field and n != 'cost' and BY_NAME[n].cost is None}).validate()
     configs = {}
     for cost in COSTS:
         fields = {BY_NAME[n].field: v for n, v in values.items()

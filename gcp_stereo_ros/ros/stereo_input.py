@@ -136,4 +136,5 @@ class StereoInput:
         self._log('warn',
                   f'{self.topics()[side]}: images lost in transport. Fast DDS drops images '
                   "larger than the publisher's shared-memory segment (here "
-                  f'{self._segment / (1 << 20):g} MiB); if yours are, {SHM_ADVICE}.')
+                  f'{self._segment / (1 << 20):g} MiB), and images sent faster than it can '
+                  f'hand them over; if yours are that large, {SHM_ADVICE}.')

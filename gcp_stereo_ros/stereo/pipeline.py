@@ -100,7 +100,7 @@ class StereoConfig:
                              f'got {self.theta}')
         if self.c_low > self.c_hi:
             raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
-        if self.bf16 not in (True, False, 'auto'):
+        if not (isinstance(self.bf16, bool) or self.bf16 == 'auto'):  # 1 == True, but no
             raise ValueError(f"bf16 must be true, false or 'auto', got {self.bf16!r}")
         if not (self.device == 'cpu' or re.fullmatch(r'cuda(:\d+)?', self.device)):
             raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")

@@ -96,6 +96,7 @@ MATCH_SETTLE_SECONDS = 3.0  # see wait_for_subscribers
 # Before exiting: a player exiting right after publishing lost its last best-effort
 # messages in 2 of 20 plays, in none of 45 after lingering this long.
 LINGER_SECONDS = 1.0
+FRAME_RATE_HZ = 10.0  # make's default frame rate, and that of `play --loop` on a one-stamp bag
 
 
 def topic_name(namespace, name):
@@ -577,13 +578,16 @@ def play(args):
                       and '/gt/' not in c.topic]
             wait_for_subscribers(images, args.wait_subscribers)
             segment, too_large = shm_segment_bytes(), set()
+            resume = time.monotonic()
             while True:
-                start = None
+                start, stamps = None, []  # stamps: the pass's distinct timestamps
                 for conn, timestamp, raw in read_messages(reader, args.inp):
                     if conn.topic not in publishers:
                         continue
                     if start is None:
-                        start = (timestamp, time.monotonic())
+                        start = (timestamp, resume)
+                    if not stamps or timestamp != stamps[-1]:
+                        stamps.append(timestamp)
                     delay = start[1] + (timestamp - start[0]) / 1e9 / args.rate - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
@@ -600,6 +604,10 @@ def play(args):
                     raise ValueError(f'{args.inp}: no message to play')
                 if not args.loop:
                     break
+                # The next pass one frame period after the last stamp, as a camera would go
+                # on (a one-stamp bag at FRAME_RATE_HZ), not at once: that was a flood.
+                period = np.median(np.diff(stamps)) if len(stamps) > 1 else 1e9 / FRAME_RATE_HZ
+                resume = start[1] + (stamps[-1] - start[0] + period) / 1e9 / args.rate
             for p in publishers.values():  # reliable subscribers: let them take the last messages
                 p.wait_for_all_acked(Duration(seconds=1))
             time.sleep(LINGER_SECONDS)  # best-effort ones too
@@ -666,8 +674,8 @@ def parser():
     mk.add_argument('--storage', **STORAGE)
     mk.add_argument('--out', required=True, type=Path, metavar='BAG',
                     help='bag to write (a directory)')
-    mk.add_argument('--rate', type=positive, default=10.0, metavar='HZ',
-                    help='frames per second (default 10)')
+    mk.add_argument('--rate', type=positive, default=FRAME_RATE_HZ, metavar='HZ',
+                    help=f'frames per second (default {FRAME_RATE_HZ:g})')
     mk.add_argument('--namespace', default='', metavar='NS',
                     help='topics under this namespace (default: none, e.g. /left/image_rect)')
     mk.add_argument('--compressed', choices=('png', 'jpeg'),
@@ -692,8 +700,9 @@ def parser():
     pl.add_argument('--rate', type=positive, default=1.0, metavar='R',
                     help='speed factor (default 1)')
     pl.add_argument('--loop', action='store_true',
-                    help='play again and again, with the recorded stamps '
-                         '(as ros2 bag play --loop)')
+                    help='play again and again, with the recorded stamps (as ros2 bag play '
+                         '--loop), each pass one frame period after the last (the median '
+                         f'step between stamps; {1 / FRAME_RATE_HZ:g} s for a bag of one stamp)')
     pl.add_argument('--wait-subscribers', type=float, default=5.0, metavar='SECONDS',
                     help='wait up to this long for a subscriber on every image topic '
                          '(ground truth excepted) before publishing (default 5)')
