@@ -454,26 +454,27 @@ def status_of(array_msg):
     return status, {kv.key: kv.value for kv in status.values}
 
 
-@pytest.mark.parametrize('harness', [{'use_gcp': False, 'use_sim_time': True}], indirect=True)
-def test_sim_time_without_a_clock_gives_no_latency(harness, pair):
-    """Before a /clock the node's time is 0: the latency was -(the stamp), now it is empty."""
-    left, right = pair
+def diagnostics_of_one_pair(harness, pair):
+    """Return the /diagnostics arrays received until one says a pair was processed."""
     diagnostics = harness.listen('/diagnostics', DiagnosticArray)
-    harness.send_pair(left, right, 'rgb8', 1_000_000_000)
+    harness.send_pair(*pair, 'rgb8', 1_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity')
     wait_for(lambda: any(status_of(d)[1]['pairs processed'] == '1' for d in diagnostics),
              'diagnostics after one pair')
+    return diagnostics
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False, 'use_sim_time': True}], indirect=True)
+def test_sim_time_without_a_clock_gives_no_latency(harness, pair):
+    """Before a /clock the node's time is 0: the latency was -(the stamp), now it is empty."""
+    diagnostics = diagnostics_of_one_pair(harness, pair)
     assert {status_of(d)[1]['latency s (stamp to publish), mean'] for d in diagnostics} == {''}
 
 
 @pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
 def test_diagnostics_say_what_is_wrong(harness, pair):
     left, right = pair
-    diagnostics = harness.listen('/diagnostics', DiagnosticArray)
-    harness.send_pair(left, right, 'rgb8', 1_000_000_000)
-    wait_for(lambda: harness.disparity, 'disparity')
-    wait_for(lambda: any(status_of(d)[1]['pairs processed'] == '1' for d in diagnostics),
-             'diagnostics after one pair')
+    diagnostics = diagnostics_of_one_pair(harness, pair)
     status, values = status_of(diagnostics[-1])
     assert status.level == DiagnosticStatus.OK and status.name == 'gcp_stereo_node: stereo'
     assert {'left images/s', 'right images/s', 'pairs processed/s', 'pairs dropped stale',
