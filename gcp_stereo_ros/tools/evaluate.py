@@ -50,6 +50,13 @@ def opencv_sgbm(left, right, max_disp, block=5):
     return disp
 
 
+def cnn_method(method):
+    """Return the pipeline method whose config runs `method`'s CNN; None if it runs none."""
+    if method == 'cnn':  # the CNN alone, with Census+GCP's CNN settings
+        return 'census+gcp'
+    return method if method.endswith('+gcp') else None
+
+
 class Runner:
     """Runs any method of METHODS on frames, sharing one loaded CNN."""
 
@@ -83,7 +90,7 @@ class Runner:
             return opencv_sgbm(left, right, max_disp), None, time.perf_counter() - t
         if method == 'cnn':  # winner-takes-all of the CNN confidence volume alone
             from ..stereo.cnn import confidence
-            pipe = self.pipeline('census+gcp', max_disp)
+            pipe = self.pipeline(cnn_method(method), max_disp)
             cfg = pipe.config
             _, cof_d, _ = confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16)
             return cof_d.astype(np.float32), None, time.perf_counter() - t
@@ -173,9 +180,9 @@ def evaluate_frame(runner, args, source, name):
         disp, _, seconds = runner.run(method, frame.left, frame.right, max_disp)
         rows.append({'method': method, 'frame': name, **error_rates(disp, frame.gt, frame.valid),
                      'seconds': seconds})
-        if method == 'cnn' or method.endswith('+gcp'):  # what bf16 'auto' gave, per row
+        if (cnn := cnn_method(method)) is not None:  # what bf16 'auto' gave, per row
             from ..stereo.cnn import resolve_bf16
-            cfg = runner.config('census+gcp' if method == 'cnn' else method, max_disp)
+            cfg = runner.config(cnn, max_disp)
             rows[-1]['bf16'] = resolve_bf16(cfg.bf16, cfg.device)
         if args.out:
             save_png(args.out / f'{name.replace("/", "_")}_{method}.png', colorize(disp, max_disp))
