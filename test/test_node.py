@@ -24,6 +24,7 @@ from gcp_stereo_ros.ros.rosimage import (array_to_compressed_fields, array_to_im
 from gcp_stereo_ros.ros.worker import NewestWorker
 from gcp_stereo_ros.stereo.cnn import bf16_native
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
+from gcp_stereo_ros.tools.load import cpu_seconds
 import numpy as np
 import pytest
 from rcl_interfaces.srv import SetParameters
@@ -734,11 +735,6 @@ def test_console_script_refuses_bad_start_up_in_one_line(tmp_path):
         assert proc.returncode == 2 and len(lines) == 1, proc.stderr
         assert lines[0].startswith('gcp_stereo_node: error: cannot start: ')
         assert reason in lines[0], lines[0]
-
-
-def cpu_seconds(pid):
-    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 @pytest.mark.parametrize('signals, gap', [((signal.SIGINT, signal.SIGINT), 0.1),

@@ -3,7 +3,6 @@ The pipeline on real data.
 
 Error thresholds, configuration checks, GCP refinement, memory, stopping a run.
 """
-from pathlib import Path
 import threading
 import time
 
@@ -16,6 +15,7 @@ from gcp_stereo_ros.stereo.images import bin_area, upsample
 from gcp_stereo_ros.stereo.pipeline import (fixed_point_scale, memory_bytes, MIB,
                                             mmap_large_arrays, StereoConfig, StereoPipeline)
 from gcp_stereo_ros.tools.evaluate import opencv_sgbm
+from gcp_stereo_ros.tools.load import reset_peak_rss, rss_mb
 import numpy as np
 import pytest
 from skimage import data
@@ -232,16 +232,6 @@ def test_memory_limit_refuses_with_what_fits(motorcycle):
     assert StereoPipeline(config.replace(max_disp=fits))(left, right).disparity.shape == (500, 741)
 
 
-def rss_mb(key='VmRSS'):
-    for line in Path('/proc/self/status').read_text().splitlines():
-        if line.startswith(key + ':'):
-            return int(line.split()[1]) / 1024
-
-
-def reset_peak_rss():
-    Path('/proc/self/clear_refs').write_text('5')  # VmHWM := VmRSS
-
-
 def test_memory_estimate_bounds_the_measured_peak(motorcycle):
     """
     Check memory_bytes against the measured peak RSS of a frame after one of the same size.
@@ -253,11 +243,11 @@ def test_memory_estimate_bounds_the_measured_peak(motorcycle):
     pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=96, bf16=False))
     pipe(left[:64, :128], right[:64, :128])  # first calls of everything
     pipe.release()
-    base = rss_mb()
+    base = rss_mb('self')
     pipe(left, right)
-    reset_peak_rss()
+    reset_peak_rss('self')
     pipe(left, right)
-    peak = rss_mb('VmHWM') - base
+    peak = rss_mb('self', 'VmHWM') - base
     estimate = memory_bytes(pipe.config, *left.shape[:2]) / MIB
     # Lower bound loose: oneDNN keeps its scratchpad from earlier, larger convolutions.
     assert 0.5 * estimate < peak <= estimate, (peak, estimate)
@@ -273,13 +263,13 @@ def test_arrays_are_let_go_not_doubled(motorcycle):
     left, right, _ = motorcycle
     pipe = StereoPipeline(StereoConfig.for_cost('census', use_gcp=False, max_disp=128))
     pipe(left, right)
-    before = rss_mb()
-    reset_peak_rss()
+    before = rss_mb('self')
+    reset_peak_rss('self')
     pipe.with_config(pipe.config.replace(max_disp=96))(left, right)
-    assert rss_mb('VmHWM') - before < 60  # holding both would add 136 MB
-    assert before - rss_mb() > 30  # 181 MB let go, 136 MB taken
+    assert rss_mb('self', 'VmHWM') - before < 60  # holding both would add 136 MB
+    assert before - rss_mb('self') > 30  # 181 MB let go, 136 MB taken
     pipe.release()
-    assert before - rss_mb() > 170
+    assert before - rss_mb('self') > 170
 
 
 def test_a_run_stops_soon_after_its_cancel_flag_is_set(data_dir):

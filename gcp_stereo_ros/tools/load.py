@@ -53,6 +53,11 @@ def rss_mb(pid, key='VmRSS'):
     return float('nan')
 
 
+def reset_peak_rss(pid):
+    """Make the peak resident memory ('VmHWM') of process `pid` its current RSS (Linux)."""
+    Path(f'/proc/{pid}/clear_refs').write_text('5')
+
+
 def cpu_seconds(pid, tid=None):
     """Return the user + system CPU seconds of process `pid` (of its thread `tid` if given)."""
     path = f'/proc/{pid}/task/{tid}/stat' if tid else f'/proc/{pid}/stat'
@@ -214,7 +219,7 @@ def _walk_pipeline(steps, frame, values):
         except ValueError as err:
             print(f'{step:<16}{"refused":>9}{estimate:13.0f}  {err}', flush=True)
             continue
-        Path('/proc/self/clear_refs').write_text('5')  # peak := current RSS
+        reset_peak_rss('self')
         pipeline(*pair)
         peak = rss_mb('self', 'VmHWM') - base
         print(f'{step:<16}{peak:9.0f}{estimate:13.0f}{estimate / peak:7.2f}', flush=True)
@@ -270,7 +275,7 @@ def _walk_node(steps, frame, values, peer, pid):
     print(f'{"step":<16}{"outcome":<11}{"RSS MB":>8}{"peak MB":>9}{"estimate MB":>13}')
     print(f'{"start":<16}{"":<11}{rss_mb(pid):8.0f}')
     for step in steps:
-        Path(f'/proc/{pid}/clear_refs').write_text('5')  # peak := current RSS
+        reset_peak_rss(pid)
         estimate, outcome = '', ''
         if step == 'idle':
             time.sleep(IDLE_SECONDS)
