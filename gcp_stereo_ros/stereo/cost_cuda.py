@@ -45,11 +45,9 @@ def _census_transform(gray, rad, bits):
 def _census_cost(left, right, rad, scale, invalid, out):
     """Write scale * Hamming(left bits at x, right bits at x - d) into each valid cell."""
     h, w, nd = out.shape
-    i = cuda.grid(1)
-    if i >= h * w:
+    y, x, valid = _pixel(cuda.grid(1), h, w, nd, rad)
+    if y < 0:
         return
-    y, x = i // w, i % w
-    valid = _valid(h, w, nd, rad, y, x)
     for d in range(valid):
         out[y, x, d] = (cuda.popc(left[0, y, x] ^ right[0, y, x - d])
                         + cuda.popc(left[1, y, x] ^ right[1, y, x - d])) * scale
@@ -61,11 +59,9 @@ def _census_cost(left, right, rad, scale, invalid, out):
 def _sad_cost(left, right, rad, scale, invalid, out):
     """Write min(scale * mean |left - right shifted by d| over the window, invalid)."""
     h, w, nd = out.shape
-    i = cuda.grid(1)
-    if i >= h * w:
+    y, x, valid = _pixel(cuda.grid(1), h, w, nd, rad)
+    if y < 0:
         return
-    y, x = i // w, i % w
-    valid = _valid(h, w, nd, rad, y, x)
     area = np.float32((2 * rad + 1) ** 2)
     for d in range(valid):
         s = np.float32(0.0)
@@ -77,12 +73,19 @@ def _sad_cost(left, right, rad, scale, invalid, out):
         out[y, x, d] = invalid
 
 
-@njit(inline='always')  # kernels call it too (it compiles for a GPU without one)
-def _valid(h, w, nd, rad, y, x):
-    """Return how many d from 0 are valid at (x, y): both windows inside the images."""
+@njit(inline='always')  # kernels call it (it compiles for a GPU without one)
+def _pixel(i, h, w, nd, rad):
+    """
+    Return (y, x) of pixel `i` of an (h, w) image and how many d from 0 are valid there.
+
+    Valid: both windows inside the images. y = -1 for an i past the last pixel.
+    """
+    if i >= h * w:
+        return -1, 0, 0
+    y, x = i // w, i % w
     if rad <= y < h - rad and rad <= x < w - rad:
-        return min(nd, x - rad + 1)
-    return 0
+        return y, x, min(nd, x - rad + 1)
+    return y, x, 0
 
 
 def cost_volume(images, max_disp, cost='census', window=9, out=None, scale=1, dtype=np.float32):
