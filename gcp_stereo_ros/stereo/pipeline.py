@@ -229,20 +229,35 @@ def check_memory(cfg, height, width):
         + what)
 
 
-def mmap_large_arrays():
-    """
-    Make glibc's malloc serve blocks of 1 MiB or more with mmap, in this whole process.
+# Blocks from this size on are mmap'd (`mmap_large_arrays`): above every block a KITTI-size
+# frame allocates and frees while it runs (a CNN strip's layer output: 23 MB).
+MMAP_BYTES = 64 * MIB
 
-    For long-running processes (the node, the bag tool). By default glibc raises that
-    threshold up to 32 MiB after a large block is freed, and serves blocks below it from
-    heaps that keep freed memory: measured at 741x500, 100 MB more after the arrays were let
-    go and steady peaks 30 % higher. With it, RSS follows the arrays alive. No-op without
-    glibc.
-    """
+
+def _glibc(call, *args):
+    """Call glibc's `call` (mallopt, malloc_trim); no-op without glibc."""
     try:
-        ctypes.CDLL(None).mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
+        getattr(ctypes.CDLL(None), call)(*args)
     except (OSError, AttributeError):
         pass
+
+
+def mmap_large_arrays():
+    """
+    Make glibc's malloc serve blocks of MMAP_BYTES or more with mmap, in this whole process.
+
+    For long-running processes (the node, the bag tool), with `StereoPipeline.release` at
+    idle. By default glibc raises its mmap threshold up to 32 MiB after a large block is
+    freed and serves blocks below it from heaps that keep freed memory: measured at 741x500,
+    100 MB more after the arrays were let go and steady peaks 30 % higher. A fixed threshold
+    of 1 MiB made RSS follow the arrays alive, but every block of a frame was then fresh
+    pages (a page fault per 4 KiB): a KITTI pair took 1.3 s instead of 0.74 s (CNN 0.74 s
+    instead of 0.35 s; README, "Speed"). With MMAP_BYTES the blocks freed within a pair (a
+    CNN strip's layer outputs, 24 per pair) are reused within it, the volumes are mmap'd, and
+    each pair ends by giving the freed heap memory back (malloc_trim), so RSS between pairs
+    still follows the arrays alive.
+    """
+    _glibc('mallopt', -3, MMAP_BYTES)  # M_MMAP_THRESHOLD
 
 
 class StereoPipeline:
@@ -290,6 +305,7 @@ class StereoPipeline:
     def release(self):
         """Let go of the kept arrays (of every pipeline sharing them), e.g. when idle."""
         self._workspace.clear()
+        _glibc('malloc_trim', 0)  # kept arrays below MMAP_BYTES were heap blocks
 
     @property
     def net(self):
@@ -351,6 +367,7 @@ class StereoPipeline:
             outputs = tuple(None if a is None else upsample(a, f, shape)
                             for a in (disp, gcp, cof_c, cof_d, cof_dr))
             lap('upsample')
+        _glibc('malloc_trim', 0)  # the heap blocks this pair freed (see mmap_large_arrays)
         return StereoResult(*outputs, seconds)
 
     def _match(self, left, right, confidence, lap, seconds, cancel):

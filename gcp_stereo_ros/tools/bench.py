@@ -4,7 +4,8 @@ gcp-stereo-bench: stage timings against OpenCV StereoSGBM (MODE_HH) in the same 
 A real pair is resized to KITTI size (1242x375) and matched with D = 128 disparities. Each
 stage runs once to warm up (Numba compilation, torch kernels), then `--repeat` times; the
 median is reported, with its ratio to OpenCV's time on the same images. Machines are noisy:
-read the ratios, not the absolute seconds.
+read the ratios, not the absolute seconds. The process allocates as the node and the bag
+tool do (`mmap_large_arrays`); the first line names the CPU.
 
 The default pipeline (bf16 'auto') runs end to end on the CPU as is and in fp32, with
 `downsample` 2 (as is and in fp32) and 4; with a CUDA GPU also on it (`device: cuda`,
@@ -13,6 +14,7 @@ says why and measures no CUDA figure.
 """
 import argparse
 import json
+import os
 from pathlib import Path
 import resource
 import statistics
@@ -29,10 +31,23 @@ from ..stereo import gpu
 from ..stereo.cnn import bf16_native
 from ..stereo.cost import cost_volume
 from ..stereo.images import gray_pair
-from ..stereo.pipeline import StereoConfig, StereoPipeline
+from ..stereo.pipeline import mmap_large_arrays, StereoConfig, StereoPipeline
 from ..stereo.sgm import aggregate
 
 KITTI_SIZE = (1242, 375)
+
+
+def cpu_name():
+    """Return the CPU's model name (/proc/cpuinfo), its vector extensions and core count."""
+    try:
+        info = Path('/proc/cpuinfo').read_text()
+    except OSError:
+        return f'unknown CPU, {os.cpu_count()} cores'
+    name = next((line.split(':', 1)[1].strip() for line in info.splitlines()
+                 if line.startswith('model name')), 'unknown CPU')
+    flags = set(info.split())
+    extensions = [f for f in ('avx2', 'avx512f', 'avx512_bf16', 'amx_bf16') if f in flags]
+    return f'{name} ({", ".join(extensions) or "no AVX2"}), {os.cpu_count()} cores'
 
 
 def median_seconds(fn, repeat):
@@ -81,12 +96,13 @@ def main(argv=None):
     ap.add_argument('--json', type=Path, help='write {"stages", "ratios", "peak_rss_mb"} here')
     args = ap.parse_args(argv)
 
+    mmap_large_arrays()  # the allocator as the node and the bag tool run it
     frame = load_frame(args.dataset, args.frame or list_frames(args.dataset)[0])
     left, right = (cv2.resize(g, KITTI_SIZE, interpolation=cv2.INTER_AREA)
                    for g in gray_pair(frame.left, frame.right))
     nd = args.max_disp
     print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, '
-          f'repeat {args.repeat}')
+          f'repeat {args.repeat}; {cpu_name()}')
     seconds = volume_stage_seconds(left, right, nd, args.repeat)
     pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
     print(f"pipeline: the defaults; bf16 'auto' is {bf16_native()} here")
