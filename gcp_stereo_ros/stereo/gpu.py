@@ -73,8 +73,17 @@ def view(tensor):
 
 def launch(kernel, n, *args):
     """Run `kernel` on at least `n` threads (a 1-D grid); tensors among `args` as views."""
+    launch_blocks(kernel, -(-n // THREADS), THREADS, 0, *args)
+
+
+def launch_blocks(kernel, blocks, block, shared, *args):
+    """
+    Run `kernel` on `blocks` blocks of shape `block` with `shared` bytes of dynamic memory.
+
+    Tensors among `args` are passed as views.
+    """
     args = [view(a) if isinstance(a, torch.Tensor) else a for a in args]
-    kernel[max(1, -(-n // THREADS)), THREADS](*args)
+    kernel[max(1, blocks), block, 0, shared](*args)
 
 
 def synchronize():

@@ -454,7 +454,7 @@ class StereoPipeline:
                               self._array('cuda_total', shape, vtype))
             self._workspace.update(cuda_cost=volume, cuda_total=total)
             stage('sgm')
-            disp, consistent = winners(total, cfg.subpixel, cfg.lr_check)
+            disp, consistent = winners(total, cfg.subpixel, cfg.lr_check)[:2]
             stage('wta')
             fresh = cof if cfg.use_gcp and confidence is None else []
             disp, consistent, gcp, *fresh = (None if a is None else a.cpu().numpy()

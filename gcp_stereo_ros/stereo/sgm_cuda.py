@@ -1,29 +1,59 @@
 """
 CUDA twin of sgm.py: path costs, their sum S and the winner-takes-all in GPU memory.
 
-One kernel launch per path direction r, one thread per path: the thread starts at a pixel
-whose predecessor p - r lies outside the image and walks p, p + r, p + 2r, ... to the
-border, computing L_r(p, .) over all d from the previous pixel's, which it keeps in its
-column of a small buffer, and adding it into S. The paths of one direction never share a
-pixel, so no two threads write one cell, and the directions run one after the other in
-`sgm.summation_order`, the CPU's order: S equals the CPU's exactly for uint16 volumes, and
-for float32 within float rounding (the CPU's compiler reassociates some of its sums).
-The penalties and limits are the CPU's (`sgm.penalties`).
+The layout of libSGM (Hernandez-Juarez et al. 2016, "Embedded real-time stereo estimation via
+Semi-Global Matching on the GPU"): a group of `lanes(D)` threads (a warp from D = 17 on, at
+least 8) walks one path, lane l holding disparities d = l, l + lanes, ...; so neighbouring
+lanes read neighbouring d of the (H, W, D) volume, and a warp's load of 32 uint16 costs
+touches two 32-byte sectors (four for float32) where one thread per path touched 32. At each
+step a lane reads L_r(p - r, d - 1) and L_r(p - r, d + 1) of its neighbours and the partial
+minima of all lanes from shared memory, double-buffered by step parity: one barrier a step.
+The arithmetic is float32 for both volume types (uint16 sums stay below 2^17: exact), each
+L_r computed as (C - min L_r(p - r)) + the best predecessor term: the order in which the
+CPU's compiler evaluates `sgm._path_step` (fastmath), so float32 path costs round alike
+(the simulator checks catch it if that order changes).
+
+All directions run in one launch (a block holds `gpu.THREADS // lanes` paths of one direction),
+so at KITTI size 16 paths give ~29,000 paths, ~930,000 threads, more than a GPU holds. S must
+equal the CPU's float32 sums, which add the L_r in `sgm.summation_order`: float addition is
+not associative, so concurrent directions cannot add into S as they go (atomics would add in
+whatever order they arrive). Each direction writes its own L_r volume instead (the first into
+S itself), and a second kernel adds them in that order: paths - 1 extra volumes of the volume's
+type (1.8 GB for a uint16 KITTI volume at D = 128 and 16 paths) and about 2 (paths - 1) volumes
+more memory traffic than a sum in place, for a launch that fills the GPU. The penalties and
+limits are the CPU's (`sgm.penalties`).
+
+The WTA, with the same lanes across the d of one pixel: the first minimum and the second cost
+outside best +- 1 by shared-memory reductions, the sub-pixel fit of `sgm.parabola_offset`; the
+left-right check reads the right view's winners, which a kernel of their own finds first with
+lanes along a diagonal of the volume (see `_right_winners`), so that also reads coalesced.
 """
-from numba import cuda, njit
+from numba import cuda, float32, int32, njit
+import numpy as np
 import torch
 
 from . import gpu
 from .sgm import parabola_offset, penalties, summation_order
 
+LANES = 32  # most threads per path and per WTA pixel: a warp
+THREADS = gpu.THREADS  # per block (a constant the kernels can size shared arrays with)
+INF = np.float32(np.inf)
+SHARED_BYTES = 48 * 1024  # the most dynamic shared memory a block gets without opting in
 
+
+def lanes(nd):
+    """Return the threads a path (or a WTA pixel) of D = `nd` disparities gets: 8, 16 or 32."""
+    return min(LANES, max(8, 1 << (nd - 1).bit_length()))
+
+
+@njit(inline='always')  # kernels call it too (it compiles for a GPU without one)
 def _starts(h, w, dx, dy):
     """Return the number of paths of direction (dx, dy): pixels whose predecessor is outside."""
     rows = min(abs(dy), h)
     return rows * w + min(abs(dx), w) * (h - rows)
 
 
-@njit(inline='always')  # kernels call it too (it compiles for a GPU without one)
+@njit(inline='always')
 def _start(b, h, w, dx, dy):
     """Return (x, y) of the b-th pixel whose predecessor (x - dx, y - dy) is outside."""
     rows = min(abs(dy), h)
@@ -35,41 +65,96 @@ def _start(b, h, w, dx, dy):
     return (c if dx > 0 else w - 1 - c), (y + rows if dy > 0 else y)
 
 
+@njit(inline='always')
+def _length(x, y, h, w, dx, dy):
+    """Return the number of pixels of the path from (x, y) in direction (dx, dy)."""
+    n = h + w
+    if dx != 0:
+        n = min(n, ((w - 1 - x) if dx > 0 else x) // abs(dx) + 1)
+    if dy != 0:
+        n = min(n, ((h - 1 - y) if dy > 0 else y) // abs(dy) + 1)
+    return n
+
+
 @cuda.jit
-def _path(cost, total, line, n, p1, p2, dx, dy, first):
-    """Write (`first`) or add L_(dx, dy) into `total`; `line` (D, n): each path's last L_r."""
+def _paths(cost, total, lines, dirs, p1, p2):
+    """
+    Write L_r of every direction: the first into `total`, the k-th into lines[k - 1].
+
+    `dirs` (n, 3): dx, dy and the first block of each direction. Block (lanes, group): its
+    `group` paths of one direction; dynamic shared memory per path: L_r(p - r, .) and the
+    lanes' minima of it, for two steps.
+    """
     h, w, nd = cost.shape
-    b = cuda.grid(1)
-    if b >= n:
-        return
-    x, y = _start(b, h, w, dx, dy)
-    m = cost[y, x, 0]  # min_d L_r(p, d)
-    for d in range(nd):  # L_r = C where the path enters
-        line[d, b] = cost[y, x, d]
-        v = line[d, b]
-        m = min(m, v)
-        total[y, x, d] = v if first else total[y, x, d] + v
-    x += dx
-    y += dy
-    while 0 <= x < w and 0 <= y < h:
-        jump = m + p2
-        below = line[0, b]  # L_r(p - r, d - 1), read before it is overwritten
-        low = cost[y, x, 0] + jump  # >= L_r(p, 0): the min over d starts there
-        for d in range(nd):
-            here = line[d, b]
-            best = min(here, jump)
-            if d > 0:
-                best = min(best, below + p1)
-            if d + 1 < nd:
-                best = min(best, line[d + 1, b] + p1)
-            line[d, b] = cost[y, x, d] + best - m
-            v = line[d, b]
+    nl, group = cuda.blockDim.x, cuda.blockDim.y
+    lane, j = cuda.threadIdx.x, cuda.threadIdx.y
+    blk = cuda.blockIdx.x
+    k = 0
+    while k + 1 < dirs.shape[0] and dirs[k + 1, 2] <= blk:
+        k += 1
+    dx, dy = dirs[k, 0], dirs[k, 1]
+    out = total if k == 0 else lines[k - 1]
+    n = _starts(h, w, dx, dy)
+    first = (blk - dirs[k, 2]) * group
+    longest = 0  # the block's longest path: all its threads pass as many barriers
+    steps = 0
+    x = y = 0
+    for i in range(group):
+        if first + i < n:
+            px, py = _start(first + i, h, w, dx, dy)
+            size = _length(px, py, h, w, dx, dy)
+            longest = max(longest, size)
+            if i == j:
+                x, y, steps = px, py, size
+    shared = cuda.shared.array(0, float32)
+    line = j * 2 * (nd + nl)  # L_r of step parity s at line + s * nd + d
+    mins = line + 2 * nd  # the lanes' minima at mins + s * nl + lane
+    if steps > 0:  # L_r = C where the path enters
+        low = INF
+        for d in range(lane, nd, nl):
+            c = cost[y, x, d]
+            out[y, x, d] = c
+            v = float32(c)
+            shared[line + d] = v
             low = min(low, v)
-            total[y, x, d] = v if first else total[y, x, d] + v
-            below = here
-        m = low
-        x += dx
-        y += dy
+        shared[mins + lane] = low
+    cuda.syncthreads()
+    s = 0
+    for t in range(1, longest):
+        if t < steps:
+            x += dx
+            y += dy
+            m = shared[mins + s * nl]  # min_d L_r(p - r, d)
+            for i in range(1, nl):
+                m = min(m, shared[mins + s * nl + i])
+            jump = m + p2
+            low = INF
+            for d in range(lane, nd, nl):
+                prev = line + s * nd + d
+                best = min(shared[prev], jump)
+                if d > 0:
+                    best = min(best, shared[prev - 1] + p1)
+                if d + 1 < nd:
+                    best = min(best, shared[prev + 1] + p1)
+                v = (float32(cost[y, x, d]) - m) + best  # as the CPU's compiler orders it
+                out[y, x, d] = v
+                shared[line + (1 - s) * nd + d] = v
+                low = min(low, v)
+            shared[mins + (1 - s) * nl + lane] = low
+        cuda.syncthreads()
+        s = 1 - s
+
+
+@cuda.jit
+def _path_sum(total, lines):
+    """Set total = ((L_0 + L_1) + L_2) + ... per cell (flat): `total` holds L_0, lines[k] L_k+1."""
+    i = cuda.grid(1)
+    if i >= total.shape[0]:
+        return
+    v = total[i]
+    for k in range(lines.shape[0]):
+        v = v + lines[k, i]
+    total[i] = v
 
 
 def aggregate(cost, p1, p2, paths, top, out=None):
@@ -78,56 +163,133 @@ def aggregate(cost, p1, p2, paths, top, out=None):
 
     `cost`: (H, W, D) uint16 or float32 with costs >= 0 (not checked: the pipeline's own
     kernels make it); `top`: its largest value, for the uint16 limit (its maker knows it).
-    `out`: a tensor to write S into, or None. Returns S, a tensor of the volume's type.
+    `out`: a tensor to write S into, or None. Returns S, a tensor of the volume's type, equal
+    to the CPU's. Needs paths - 1 volumes of working memory besides.
     """
     h, w, nd = cost.shape
     p1, p2 = penalties(gpu.numpy_type(cost), p1, p2, paths, top)
     total = torch.empty_like(cost) if out is None else out
     order = summation_order(paths)
-    n = max(_starts(h, w, dx, dy) for dx, dy in order)
-    # Path costs in the arithmetic type of the volume: int32 holds every uint16 sum exactly.
-    line = torch.empty((nd, n), dtype=torch.float32 if cost.dtype == torch.float32
-                       else torch.int32, device=cost.device)
-    if cost.dtype != torch.float32:
-        p1, p2 = int(p1), int(p2)
-    for k, (dx, dy) in enumerate(order):
-        gpu.launch(_path, n, cost, total, line, _starts(h, w, dx, dy), p1, p2, dx, dy, k == 0)
+    nl = lanes(nd)
+    per_path = 4 * 2 * (nd + nl)  # bytes of shared memory
+    group = max(1, min(THREADS // nl, SHARED_BYTES // per_path))
+    dirs, blocks = [], 0
+    for dx, dy in order:
+        dirs.append((dx, dy, blocks))
+        blocks += -(-_starts(h, w, dx, dy) // group)
+    dirs = torch.tensor(dirs, dtype=torch.int32).to(cost.device)
+    lines = torch.empty((len(order) - 1,) + cost.shape, dtype=cost.dtype, device=cost.device)
+    gpu.launch_blocks(_paths, blocks, (nl, group), group * per_path, cost, total, lines, dirs,
+                      np.float32(p1), np.float32(p2))
+    gpu.launch(_path_sum, total.numel(), total.view(-1), lines.view(len(order) - 1, -1))
     return total
 
 
 @cuda.jit
-def _wta(total, subpixel, lr_tol, out, consistent):
-    """One thread per pixel: the CPU's `sgm._wta`, first minimum on ties."""
+def _right_winners(total, rbest):
+    """
+    rbest[y, xr] = argmin_d S(y, xr + d, d) over xr + d < W (first minimum): the right WTA.
+
+    One thread per right pixel; lane j of a warp takes d = t - j at step t, so at each step
+    the warp reads consecutive d of one pixel (xr - j + t).
+    """
     h, w, nd = total.shape
     i = cuda.grid(1)
     if i >= h * w:
         return
-    y, x = i // w, i % w
+    y, xr = i // w, i % w
+    j = cuda.threadIdx.x % LANES
+    top = min(nd, w - xr)
     best = 0
-    for d in range(1, nd):
-        if total[y, x, d] < total[y, x, best]:
-            best = d
+    low = INF
+    for t in range(LANES + nd - 1):  # the same count in every lane: they stay in step
+        d = t - j
+        if 0 <= d < top:
+            v = float32(total[y, xr + d, d])
+            if v < low:
+                best, low = d, v
+    rbest[y, xr] = best
+
+
+@cuda.jit
+def _winners(total, rbest, subpixel, lr_tol, out, consistent, s_best, s_second):
+    """
+    Write the CPU's `sgm._wta` (first minimum on ties), S(best) and min S over |d - best| > 1.
+
+    Block (lanes, group): `group` pixels, the lanes of one across its d. `rbest` is the right
+    view's winners (from `_right_winners`) when lr_tol >= 0.
+    """
+    h, w, nd = total.shape
+    nl, group = cuda.blockDim.x, cuda.blockDim.y
+    lane, j = cuda.threadIdx.x, cuda.threadIdx.y
+    i = cuda.blockIdx.x * group + j
+    inside = i < h * w
+    y, x = i // w, i % w
+    low, at = INF, nd
+    if inside:
+        for d in range(lane, nd, nl):
+            v = float32(total[y, x, d])
+            if v < low:
+                low, at = v, d
+    values = cuda.shared.array(THREADS, float32)
+    indices = cuda.shared.array(THREADS, int32)
+    seconds = cuda.shared.array(THREADS, float32)
+    values[j * nl + lane] = low
+    indices[j * nl + lane] = at
+    cuda.syncthreads()
+    low, best = values[j * nl], indices[j * nl]
+    for k in range(j * nl + 1, j * nl + nl):
+        if values[k] < low or (values[k] == low and indices[k] < best):
+            low, best = values[k], indices[k]
+    second = INF
+    if inside:
+        for d in range(lane, nd, nl):
+            v = float32(total[y, x, d])  # read by every lane: one load of the warp
+            if abs(d - best) > 1:
+                second = min(second, v)
+    seconds[j * nl + lane] = second
+    cuda.syncthreads()
+    if not inside or lane != 0:
+        return
+    for k in range(j * nl + 1, j * nl + nl):
+        second = min(second, seconds[k])
+    s_best[y, x] = low
+    s_second[y, x] = second
     offset = 0.0
     if subpixel and 0 < best < nd - 1:
         offset = parabola_offset(total[y, x, best - 1], total[y, x, best], total[y, x, best + 1])
     out[y, x] = best + offset
     if lr_tol >= 0:  # the right view's winner at xr = x - best
         xr = x - best
-        rbest = 0
-        for d in range(1, min(nd, w - xr)):
-            if total[y, xr + d, d] < total[y, xr + rbest, rbest]:
-                rbest = d
-        consistent[y, x] = abs(rbest - best) <= lr_tol
+        rb = 0
+        if xr >= 0:
+            rb = rbest[y, xr]
+        else:  # outside the right image: the CPU's scan, its indices wrapping as there
+            for d in range(1, min(nd, w - xr)):
+                if total[y, xr + d, d] < total[y, xr + rb, rb]:
+                    rb = d
+        consistent[y, x] = abs(rb - best) <= lr_tol
 
 
 def winners(total, subpixel=False, lr_check=False):
     """
-    Return the WTA disparity and the left-right agreement of S on the GPU, as tensors.
+    Return the WTA of S on the GPU: (disparity, consistent, s_best, s_second), tensors (H, W).
 
-    float32 (H, W) and bool (H, W) (all True without `lr_check`); `sgm.finish` turns them
-    into `sgm.disparity`'s output.
+    disparity float32, consistent bool (all True without `lr_check`); `sgm.finish` turns the
+    two into `sgm.disparity`'s output. s_best = S(best d) and s_second = min S(d) over
+    |d - best| > 1 (+inf where there is none), float32.
     """
-    out = torch.empty(total.shape[:2], dtype=torch.float32, device=total.device)
-    consistent = torch.ones(total.shape[:2], dtype=torch.bool, device=total.device)
-    gpu.launch(_wta, out.numel(), total, bool(subpixel), 1 if lr_check else -1, out, consistent)
-    return out, consistent
+    h, w, nd = total.shape
+    device = total.device
+    out = torch.empty((h, w), dtype=torch.float32, device=device)
+    consistent = torch.ones((h, w), dtype=torch.bool, device=device)
+    s_best = torch.empty((h, w), dtype=torch.float32, device=device)
+    s_second = torch.empty((h, w), dtype=torch.float32, device=device)
+    rbest = torch.zeros((h, w) if lr_check else (1, 1), dtype=torch.int32, device=device)
+    if lr_check:
+        gpu.launch(_right_winners, h * w, total, rbest)
+    nl = lanes(nd)
+    group = THREADS // nl
+    gpu.launch_blocks(_winners, -(-h * w // group), (nl, group), 0, total, rbest,
+                      bool(subpixel), 1 if lr_check else -1, out, consistent, s_best, s_second)
+    return out, consistent, s_best, s_second
