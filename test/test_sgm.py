@@ -1,4 +1,7 @@
 """SGM: exact agreement with a brute-force reference, and the optional post-processing."""
+from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.stereo.cost import cost_volume
+from gcp_stereo_ros.stereo.images import gray_pair
 from gcp_stereo_ros.stereo.sgm import aggregate, directions, disparity
 import numpy as np
 import pytest
@@ -49,6 +52,21 @@ def test_aggregate_equals_reference(paths, shape, dtype):
     np.testing.assert_array_equal(got, want.astype(dtype))
     # WTA takes the first minimum on ties, as np.argmin does.
     np.testing.assert_array_equal(disparity(got), np.argmin(want, axis=2).astype(np.float32))
+
+
+@pytest.mark.parametrize('paths', [8, 16])
+def test_real_census_volume_equals_reference(data_dir, paths):
+    # The pipeline's default volume type on a real scene (KITTI 2015 000031: road, cars): a
+    # 20x64 crop, wide enough for the sweeps' column bands and the knight-move paths to cross
+    # between them, with the bench's penalties.
+    frame = load_frame(data_dir / 'kitti2015', 'kitti2015/000031_10')
+    left, right = gray_pair(frame.left, frame.right)
+    cost = cost_volume(left[180:200, 600:664], right[180:200, 600:664], 24, 'census',
+                       dtype=np.uint16)
+    assert cost.max() > 20 and len(np.unique(cost)) > 20
+    want = reference_aggregate(cost, 4, 128, paths)
+    np.testing.assert_array_equal(aggregate(cost, 4, 128, paths), want)
+    np.testing.assert_array_equal(aggregate(cost.astype(np.float32), 4, 128, paths), want)
 
 
 def test_uint16_sums_up_to_the_limit_are_exact():

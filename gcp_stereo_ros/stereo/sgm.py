@@ -8,18 +8,21 @@ and L_r(p, d) = C(p, d) where p - r lies outside the image. S = sum over paths; 
 disparity is argmin_d S (first minimum on ties).
 
 Paths: 4 (horizontal, vertical), 8 (+ diagonals), 16 (+ the 8 knight moves (+-1, +-2),
-(+-2, +-1), the paper's default). The image is swept three times: the two horizontal paths
-row by row (rows in parallel), then every path coming from above in one top-down sweep and
-every path from below in one bottom-up sweep (pixels of a row in parallel, the previous two
-rows of each path kept in a ring buffer). C is read and S written once per sweep.
+(+-2, +-1), the paper's default). The image is swept twice: every path coming from above in
+one top-down sweep and every path from below in one bottom-up sweep, the previous two rows of
+each path kept in a ring buffer. Each row is one parallel step: each thread's task walks its
+band of columns, and in the top-down sweep two of the tasks also walk the two horizontal
+paths of the next row, which S adds up first. C is read and S written once per sweep.
 
 Two number types, same code: float32, and uint16 for integer costs (Census distances,
 integer penalties). uint16 is exact and halves the memory traffic, which bounds the sweeps;
 it needs paths * (max C + P2) <= 65535, since L_r <= C + P2 and S sums `paths` of them.
 """
 import cv2
+from llvmlite import ir
+import numba
 from numba import njit, prange, types
-from numba.extending import overload
+from numba.extending import intrinsic, overload
 import numpy as np
 
 from .cancel import flag_array
@@ -78,6 +81,15 @@ def _keys_impl(v):
     return lambda v: v
 
 
+@intrinsic
+def _key(typingctx, v):
+    """Return the key (see `_keys`) of one value: its int32 bits for float32, else v."""
+    if v == types.float32:
+        return types.int32(v), lambda context, builder, sig, args: builder.bitcast(
+            args[0], ir.IntType(32))
+    return v(v), lambda context, builder, sig, args: args[0]
+
+
 def _as(like, x):
     """Return x converted to the element type of the array `like`."""
     raise NotImplementedError('for numba-compiled code only')
@@ -101,85 +113,123 @@ def _min_key(v):
 
 
 @njit(inline='always', fastmath=True)
-def _path_step(c, prev, prev_min, p1, p2, out):
-    """
-    Compute out = L_r(p, .) from c = C(p, .) and prev = L_r(p - r, .).
+def _path_start(cost, y, x, lr, min_keys, cur, total, add):
+    """Set row `cur` of lr to L_r(p, .) = C(p, .) (p - r outside the image); if add, S += it."""
+    m = _key(cost[y, x, 0])
+    for d in range(cost.shape[2]):
+        v = cost[y, x, d]
+        lr[cur, d + 1] = v
+        if add:
+            total[y, x, d] = _as(total, total[y, x, d] + v)
+        m = min(m, _key(v))
+    min_keys[cur] = m
 
-    Return the key of min(out). Each value is cast back to the volume's type, so uint16 math
-    stays 16 bits wide.
+
+@njit(inline='always', fastmath=True)
+def _path_step(cost, y, x, lr, mins, min_keys, prev, cur, p1, p2, total, add):
     """
-    nd = c.shape[0]
-    jump = _as(out, prev_min + p2)
-    if nd == 1:
-        out[0] = _as(out, c[0] + min(prev[0], jump) - prev_min)
-    else:
-        out[0] = _as(out, c[0] + min(min(prev[0], _as(out, prev[1] + p1)), jump) - prev_min)
-        for d in range(1, nd - 1):
-            step = _as(out, min(prev[d - 1], prev[d + 1]) + p1)
-            out[d] = _as(out, c[d] + min(min(prev[d], step), jump) - prev_min)
-        out[nd - 1] = _as(out, c[nd - 1]
-                          + min(min(prev[nd - 1], _as(out, prev[nd - 2] + p1)), jump)
-                          - prev_min)
-    return _min_key(out)
+    Set row `cur` of lr to L_r(p, .) from C(p, .) = cost[y, x] and row `prev`, L_r(p - r, .).
+
+    If add, also S(p, .) = total[y, x] += L_r(p, .). Rows of lr hold L_r(d) at d + 1 and a
+    sentinel at both ends (see `_sentinel`), so every d takes the same branch-free step;
+    mins (min_keys, its keys) hold each row's min_d. Each value is cast back to the volume's
+    type, so uint16 math stays 16 bits wide. Arrays are indexed, never sliced, in the hot
+    loops: a view costs two atomic reference counts.
+    """
+    prev_min = mins[prev]
+    jump = _as(lr, prev_min + p2)
+    m = _key(lr[prev, 0])  # the sentinel, above every L_r
+    for d in range(cost.shape[2]):
+        step = _as(lr, min(lr[prev, d], lr[prev, d + 2]) + p1)
+        v = _as(lr, cost[y, x, d] + min(min(lr[prev, d + 1], step), jump) - prev_min)
+        lr[cur, d + 1] = v
+        if add:
+            total[y, x, d] = _as(total, total[y, x, d] + v)
+        m = min(m, _key(v))
+    min_keys[cur] = m
+
+
+def _sentinel(dtype, p1):
+    """
+    Return the value of the cells at d = -1 and d = D of each path cost row.
+
+    It never wins min(L(d), L(d +- 1) + P1, min L + P2): it plus P1 is the type's largest
+    value, at least min L + P2 (path_sum_bound for uint16), and stays finite for float32.
+    """
+    top = np.iinfo(dtype).max if dtype == np.uint16 else np.finfo(dtype).max
+    return dtype.type(top - p1)
+
+
+@njit(inline='always', fastmath=True)
+def _horizontal_row(cost, y, p1, p2, lr, mins, min_keys, row0, backward, total):
+    """Set rows row0 + x of lr to L_r(x, .) along row y, r = (-1, 0) if backward else (1, 0)."""
+    w = cost.shape[1]
+    x0 = w - 1 if backward else 0
+    _path_start(cost, y, x0, lr, min_keys, row0 + x0, total, False)
+    for i in range(1, w):
+        x = w - 1 - i if backward else i
+        prev = x + 1 if backward else x - 1
+        _path_step(cost, y, x, lr, mins, min_keys, row0 + prev, row0 + x, p1, p2, total, False)
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def _horizontal(cost, p1, p2, total, cancel):
-    """Set total = L_(1,0) + L_(-1,0): both horizontal paths of each row."""
-    h, w, nd = cost.shape
-    for y in prange(h):
-        if cancel[0]:
-            continue
-        a = np.empty(nd, cost.dtype)
-        b = np.empty(nd, cost.dtype)
-        m = np.empty(1, cost.dtype)  # min of the last path step, written through its key
-        m_key = _keys(m)
-        for backward in (False, True):
-            x0 = w - 1 if backward else 0
-            a[:] = cost[y, x0]
-            m_key[0] = _min_key(a)
-            if backward:
-                total[y, x0] += a
-            else:
-                total[y, x0] = a
-            for i in range(1, w):
-                x = w - 1 - i if backward else i
-                prev, cur = (a, b) if i % 2 == 1 else (b, a)
-                m_key[0] = _path_step(cost[y, x], prev, m[0], p1, p2, cur)
-                if backward:
-                    total[y, x] += cur
-                else:
-                    total[y, x] = cur
+def _sweep(cost, p1, p2, total, dirs, down, bands, sentinel, cancel):
+    """
+    Accumulate L_r into total for each r in dirs; dy > 0 counts rows back in sweep order.
 
-
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def _sweep(cost, p1, p2, total, dirs, down, cancel):
-    """Accumulate total += L_r for each r in dirs; dy > 0 counts rows back in sweep order."""
+    The top-down sweep (`down`) first sets total = L_(1,0) + L_(-1,0): tasks 0 and 1 compute
+    those two paths of the next row while every task walks its band of columns
+    bands[t]:bands[t + 1] of this row, so each row is one parallel step.
+    """
     h, w, nd = cost.shape
-    buf = np.empty((dirs.shape[0], 3, w, nd), cost.dtype)
-    mins = np.empty((dirs.shape[0], 3, w), cost.dtype)  # min_d of each buf row
+    ndirs = dirs.shape[0]
+    # Rows of L_r: (direction k, sweep row % 3, x) at (3 k + row % 3) w + x, then those of
+    # L_(+-1,0), (path, image row % 2, x), from 3 ndirs w on.
+    lr = np.full(((3 * ndirs + 4) * w, nd + 2), sentinel, cost.dtype)
+    mins = np.empty(lr.shape[0], cost.dtype)
     min_keys = _keys(mins)
-    for i in range(h):
+    hrows = 3 * ndirs * w
+    for i in range(-1 if down else 0, h):
         if cancel[0]:
             return
         y = i if down else h - 1 - i
-        slot = i % 3
-        for x in prange(w):
-            c = cost[y, x]
-            acc = total[y, x]
-            for k in range(dirs.shape[0]):
-                px = x - dirs[k, 0]
-                back = i - dirs[k, 1]
-                cur = buf[k, slot, x]
-                if back >= 0 and 0 <= px < w:
-                    ps = back % 3
-                    min_keys[k, slot, x] = _path_step(c, buf[k, ps, px], mins[k, ps, px],
-                                                      p1, p2, cur)
-                else:
-                    cur[:] = c
-                    min_keys[k, slot, x] = _min_key(c)
-                for d in range(nd):
-                    acc[d] = _as(acc, acc[d] + cur[d])
+        for t in prange(bands.shape[0] - 1):
+            if down and t < 2 and i + 1 < h:
+                _horizontal_row(cost, y + 1, p1, p2, lr, mins, min_keys,
+                                hrows + (2 * t + (i + 1) % 2) * w, t == 1, total)
+            if i < 0:
+                continue
+            slot = i % 3
+            for x in range(bands[t], bands[t + 1]):
+                if down:
+                    forward = hrows + (i % 2) * w + x
+                    backward = forward + 2 * w
+                    for d in range(nd):
+                        total[y, x, d] = _as(total, lr[forward, d + 1] + lr[backward, d + 1])
+                for k in range(ndirs):
+                    px = x - dirs[k, 0]
+                    cur = (3 * k + slot) * w + x
+                    if i >= dirs[k, 1] and 0 <= px < w:
+                        back = slot - dirs[k, 1]  # (i - dy) % 3, dy <= 2
+                        back += 3 if back < 0 else 0
+                        _path_step(cost, y, x, lr, mins, min_keys, (3 * k + back) * w + px,
+                                   cur, p1, p2, total, True)
+                    else:
+                        _path_start(cost, y, x, lr, min_keys, cur, total, True)
+
+
+def _bands(w, ndirs, horizontal, tasks):
+    """
+    Return the column bands (a boundary array) of `tasks` >= 2 tasks with equal work per row.
+
+    A cell costs `ndirs` path steps; with `horizontal`, tasks 0 and 1 also walk a row of w.
+    """
+    extra = np.zeros(tasks)
+    if horizontal:
+        extra[:2] = w
+    share = (w * ndirs + extra.sum()) / tasks
+    width = np.maximum(share - extra, 0) / ndirs
+    return np.round(np.concatenate([[0], np.cumsum(width)]) * w / width.sum()).astype(np.int64)
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -251,12 +301,14 @@ def aggregate(cost, p1, p2, paths=16, out=None, cancel=None):
     if np.shares_memory(total, cost):
         raise ValueError('out must not overlap the cost volume')
     flag = flag_array(cancel)
-    _horizontal(cost, p1, p2, total, flag)
     down = np.array([d for d in directions(paths) if d[1] > 0], np.int64)
     # Seen from a bottom-up sweep, (dx, dy) from below is (-dx, dy) from above.
     up = np.array([(-dx, dy) for dx, dy in down], np.int64)
-    _sweep(cost, p1, p2, total, down, True, flag)
-    _sweep(cost, p1, p2, total, up, False, flag)
+    tasks = max(2, numba.get_num_threads())
+    w = cost.shape[1]
+    sentinel = _sentinel(cost.dtype, p1)
+    _sweep(cost, p1, p2, total, down, True, _bands(w, len(down), True, tasks), sentinel, flag)
+    _sweep(cost, p1, p2, total, up, False, _bands(w, len(up), False, tasks), sentinel, flag)
     return total
 
 
