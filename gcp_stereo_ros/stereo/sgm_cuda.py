@@ -10,6 +10,8 @@ pixel, so no two threads write one cell, and the directions run one after the ot
 for float32 within float rounding (the CPU's compiler reassociates some of its sums).
 The penalties and limits are the CPU's (`sgm.penalties`).
 """
+import math
+
 from numba import cuda, njit
 import torch
 
@@ -96,7 +98,7 @@ def aggregate(cost, p1, p2, paths, top, out=None):
 
 
 @cuda.jit
-def _wta(total, subpixel, lr_tol, out, consistent):
+def _wta(total, subpixel, lr_tol, out, consistent, s_best, s_second):
     """One thread per pixel: the CPU's `sgm._wta`, first minimum on ties."""
     h, w, nd = total.shape
     i = cuda.grid(1)
@@ -107,6 +109,12 @@ def _wta(total, subpixel, lr_tol, out, consistent):
     for d in range(1, nd):
         if total[y, x, d] < total[y, x, best]:
             best = d
+    rival = math.inf
+    for d in range(nd):
+        if abs(d - best) > 1 and total[y, x, d] < rival:
+            rival = total[y, x, d]
+    s_best[y, x] = total[y, x, best]
+    s_second[y, x] = rival
     offset = 0.0
     if subpixel and 0 < best < nd - 1:
         offset = parabola_offset(total[y, x, best - 1], total[y, x, best], total[y, x, best + 1])
@@ -122,12 +130,13 @@ def _wta(total, subpixel, lr_tol, out, consistent):
 
 def winners(total, subpixel=False, lr_check=False):
     """
-    Return the WTA disparity and the left-right agreement of S on the GPU, as tensors.
+    Return `sgm.winners`' (disparity, consistent, s_best, s_second) of S on the GPU, as tensors.
 
-    float32 (H, W) and bool (H, W) (all True without `lr_check`); `sgm.finish` turns them
-    into `sgm.disparity`'s output.
+    float32, bool, float32, float32 (H, W); consistent is all True without `lr_check`.
     """
-    out = torch.empty(total.shape[:2], dtype=torch.float32, device=total.device)
+    out, s_best, s_second = (torch.empty(total.shape[:2], dtype=torch.float32,
+                                         device=total.device) for _ in range(3))
     consistent = torch.ones(total.shape[:2], dtype=torch.bool, device=total.device)
-    gpu.launch(_wta, out.numel(), total, bool(subpixel), 1 if lr_check else -1, out, consistent)
-    return out, consistent
+    gpu.launch(_wta, out.numel(), total, bool(subpixel), 1 if lr_check else -1, out, consistent,
+               s_best, s_second)
+    return out, consistent, s_best, s_second
