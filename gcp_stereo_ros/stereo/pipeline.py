@@ -401,6 +401,7 @@ class StereoPipeline:
         sure = None
         if self.fit is not None:
             sure = self.fit(features(disp, consistent, m, cof_c, cof_d, gcp))
+            lap('disparity_confidence')
         invalidate(disp, consistent, m, cfg, camera, sure)
         if sure is not None:
             sure[np.isnan(disp)] = 0.0
