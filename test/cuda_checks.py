@@ -95,15 +95,6 @@ def sgm_volume(crop, kind, nd=ND):
     return cost.cost_volume(*crop, nd, 'sad'), 0.3, 1.7, None
 
 
-def wta_costs(total):
-    """Return S(best d) and min S(d) over |d - best| > 1 (+inf if none), best as `sgm._wta`'s."""
-    best = np.argmin(total, axis=2)  # the first minimum
-    s = total.astype(np.float32)
-    far = np.abs(np.arange(s.shape[2]) - best[..., None]) > 1
-    return (np.take_along_axis(s, best[..., None], 2)[..., 0],
-            np.where(far, s, np.float32(np.inf)).min(axis=2))
-
-
 def check_sgm_and_wta(volume, p1, p2, paths, top, options):
     """Check `sgm_cuda` against the CPU, exactly: S, and the WTA with each (subpixel, lr)."""
     want = sgm.aggregate(volume, p1, p2, paths)
@@ -111,12 +102,10 @@ def check_sgm_and_wta(volume, p1, p2, paths, top, options):
     assert total.dtype == gpu.VOLUME_TYPES[volume.dtype]
     np.testing.assert_array_equal(host(total), want)
     for subpixel, lr_check in options:
-        disp, consistent, s_best, s_second = sgm_cuda.winners(total, subpixel, lr_check)
-        got = sgm.finish(host(disp), host(consistent), False)
-        np.testing.assert_array_equal(got, sgm.disparity(want, subpixel, lr_check))
-        want_best, want_second = wta_costs(want)
-        np.testing.assert_array_equal(host(s_best), want_best)
-        np.testing.assert_array_equal(host(s_second), want_second)
+        got = [host(a) for a in sgm_cuda.winners(total, subpixel, lr_check)]
+        for a, b in zip(got, sgm.winners(want, subpixel, lr_check)):  # disp ... s_second
+            np.testing.assert_array_equal(a, b)
+        got = sgm.finish(*got[:2], False)
     return want, got
 
 

@@ -3,6 +3,7 @@ The ROS 2 node with real rclpy.
 
 Outputs, encodings, sync, live parameters, bad input; memory, start-up and shutdown.
 """
+import math
 import os
 from pathlib import Path
 import re
@@ -180,7 +181,8 @@ def test_pair_gives_pipeline_output(harness, pair):
     np.testing.assert_array_equal(image_to_array(gcp_msg), result.gcp.astype(np.uint8) * 255)
     assert 0.3 < result.gcp.mean() < 0.95  # GCPs are a real subset: a wrong mask would show
     assert disp_msg.max_disparity == MAX_DISP - 1 and disp_msg.min_disparity == 0
-    assert disp_msg.valid_window.x_offset == MAX_DISP - 1 + 4
+    assert disp_msg.valid_window.x_offset == 4  # the window's half: no valid pixel left of it
+    assert math.copysign(1.0, disp_msg.min_disparity) == 1.0  # 0.0, never -0.0
 
 
 @pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
@@ -388,14 +390,13 @@ def test_depth_and_points2_equal_opencv_reprojection(harness, pair, monkeypatch)
     raw = StereoPipeline(config_from_params(harness.overrides))(left, right).disparity
 
     disp_msg = harness.disparity[-1]  # as consumers read a DisparityImage: Z = f * t / d
-    assert (disp_msg.f, disp_msg.t, disp_msg.delta_d) == (F, pytest.approx(BASELINE), 1.0)
+    assert (disp_msg.f, disp_msg.t, disp_msg.delta_d) == (F, pytest.approx(BASELINE), 1 / 16)
     assert (disp_msg.min_disparity, disp_msg.max_disparity) == (-CX_OFFSET,
                                                                 MAX_DISP - 1 - CX_OFFSET)
     np.testing.assert_array_equal(image_to_array(disp_msg.image),
                                   np.where(np.isnan(raw), -CX_OFFSET - 1, raw - CX_OFFSET))
-    roi = disp_msg.valid_window  # every window and searched disparity inside both images
-    assert (roi.x_offset, roi.y_offset, roi.width, roi.height) == (
-        MAX_DISP - 1 + 4, 4, w - 4 - (MAX_DISP - 1 + 4), h - 8)
+    roi = disp_msg.valid_window  # the matching window inside the image
+    assert (roi.x_offset, roi.y_offset, roi.width, roi.height) == (4, 4, w - 8, h - 8)
     for name, pub in harness.node._pubs.items():  # as image_pipeline's on Jazzy
         qos = pub.qos_profile
         assert (qos.reliability, qos.depth) == (ReliabilityPolicy.RELIABLE, 1), name
@@ -795,3 +796,22 @@ def test_node_process_stops_within_2_s_mid_frame(ros, data_dir, signals, gap):
         peer.destroy_node()
     assert code == 0 and seconds < 2.0, (code, seconds)
     assert big not in map(stamp_of, disparity)  # nothing of the stopped frame
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_each_pair_gets_the_camera_info_of_its_stamp(harness, pair):
+    """A driver that publishes each camera_info after its image: every pair has its own."""
+    left, right = pair
+    for i, baseline in enumerate((0.12, 0.3, 0.2)):
+        stamp = (i + 1) * 1_000_000_000
+        harness.send_taken('left', left, 'rgb8', stamp)
+        harness.send_taken('right', right, 'rgb8', stamp)
+        infos = rectified_infos(left.shape, baseline)
+        for side in ('left', 'right'):
+            harness.send_info(side, infos[side], stamp)
+        wait_for(lambda: len(harness.disparity) == i + 1, f'disparity {i}')
+    got = [(stamp_of(m), m.t) for m in harness.disparity]
+    # the first pair waited for its camera_info only once their stamps were seen to follow the
+    # images'; it went uncalibrated (t = 0)
+    assert got[1:] == [(2_000_000_000, pytest.approx(0.3)), (3_000_000_000, pytest.approx(0.2))]
+    assert got[0][0] == 1_000_000_000

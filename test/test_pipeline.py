@@ -13,7 +13,8 @@ from gcp_stereo_ros.stereo.cancel import CancelFlag, Cancelled
 from gcp_stereo_ros.stereo.gcp import refine, select
 from gcp_stereo_ros.stereo.images import bin_area, upsample
 from gcp_stereo_ros.stereo.pipeline import (fixed_point_scale, memory_bytes, MIB,
-                                            mmap_large_arrays, StereoConfig, StereoPipeline)
+                                            mmap_large_arrays, StereoConfig, StereoPipeline,
+                                            UNFILTERED)
 from gcp_stereo_ros.tools.evaluate import opencv_sgbm
 from gcp_stereo_ros.tools.load import reset_peak_rss, rss_mb
 import numpy as np
@@ -28,14 +29,22 @@ def motorcycle():
 
 
 def test_census_sgm_on_motorcycle(motorcycle):
-    # Measured 11.81 % (paper parameters, 16 paths). OpenCV SGBM MODE_HH scores 17.2 % on the
-    # same pair; 13 % leaves room for float rounding, and any real regression crosses it.
+    """
+    Census+SGM, paper parameters (16 paths, no post-processing): measured 11.81 %.
+
+    OpenCV SGBM MODE_HH leaves x < 64 unpublished (density 88.5 %); counting those as errors
+    it scored 17.2 %, filled by the KITTI devkit's background interpolation 8.91 %; among its
+    published pixels 6.41 % are wrong, 5.15 % too near.
+    """
     left, right, gt = motorcycle
     result = StereoPipeline(StereoConfig.for_cost('census', 'paper', use_gcp=False,
                                                   max_disp=64))(left, right)
-    census = error_rates(result.disparity, gt)['bad3']
-    assert census < 13.0
-    assert error_rates(opencv_sgbm(left, right, 64), gt)['bad3'] > census + 3
+    census = error_rates(result.disparity, gt)
+    assert census['bad3'] < 13.0 and census['density'] == 100
+    opencv = error_rates(opencv_sgbm(left, right, 64), gt)
+    assert 87 < opencv['density'] < 90 and 8.0 < opencv['bad3'] < 10.0
+    counted = 100 - opencv['density'] * (1 - opencv['bad3_published'] / 100)
+    assert 17.0 < counted < 17.5 and opencv['near3_published'] > 4.0
 
 
 def test_arrays_kept_between_frames_leave_no_trace(motorcycle):
@@ -189,7 +198,9 @@ def test_downsample_matches_the_binned_pair_and_scales_back(motorcycle):
     """
     left, right, _ = motorcycle
     left, right = left[150:351, 300:601], right[150:351, 300:601]
-    pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=64, downsample=2))
+    # the invalidation runs at full size, the test at matching size: off here
+    pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=64, downsample=2,
+                                                **UNFILTERED))
     half = pipe(left, right)
     small = pipe.with_config(pipe.config.replace(max_disp=32, downsample=1))(
         *(bin_area(g.astype(np.float32) @ np.float32([0.299, 0.587, 0.114]), 2)

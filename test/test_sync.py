@@ -1,6 +1,6 @@
-"""PairSync: exact and approximate stereo pairing, drops, and the unmatched streak."""
+"""PairSync: exact and approximate stereo pairing, drops, the unmatched streak; CameraInfos."""
 from gcp_stereo_ros.ros.params import make_sync
-from gcp_stereo_ros.ros.sync import PairSync
+from gcp_stereo_ros.ros.sync import CameraInfos, PairSync
 import pytest
 
 MS = 1_000_000  # nanoseconds
@@ -197,3 +197,17 @@ def test_queues_are_bounded_in_bytes_too():
 
 def test_node_queues_hold_a_quarter_of_the_memory_limit():
     assert make_sync({'queue_size': 1000, 'memory_limit_mb': 3072}).max_bytes == 768 << 20
+
+
+def test_camera_infos_pair_each_image_with_its_own_stamp():
+    infos = CameraInfos(tolerance_ns=5, keep=3)
+    assert not infos.seen() and infos.match({'left': 100, 'right': 100}) is None
+    for stamp in (100, 200, 300, 400):  # keeps the newest 3
+        infos.add('left', stamp, f'L{stamp}')
+        infos.add('right', stamp + 3, f'R{stamp}')  # within the tolerance
+    assert infos.seen() and infos.newest == {'left': 'L400', 'right': 'R400'}
+    assert infos.match({'left': 200, 'right': 202}) == {'left': 'L200', 'right': 'R200'}
+    assert infos.match({'left': 100, 'right': 100}) is None  # dropped: only 3 kept
+    assert infos.match({'left': 500, 'right': 500}) is None
+    assert infos.passed({'left': 250, 'right': 250})  # newer ones came: 250's never will
+    assert not infos.passed({'left': 500, 'right': 500})

@@ -108,6 +108,19 @@ def stereo_model(left_info, right_info, shape, max_disp):
     return model
 
 
+def camera_model(info, shape, config):
+    """Return (StereoModel, None) of {side: CameraInfo or None} for `config`, or (None, why)."""
+    try:
+        return stereo_model(info['left'], info['right'], shape, config.max_disp), None
+    except ValueError as err:
+        return None, err
+
+
+def depth_scale(model):
+    """Return the pipeline's `camera` (f T, cx_left - cx_right) of a model; None without one."""
+    return None if model is None else (model.fx * model.baseline, model.cx_offset)
+
+
 class Rectifier:
     """
     Rectify raw images with their CameraInfo's K, D, R and P, as image_proc does.

@@ -11,8 +11,9 @@ import numpy as np
 
 from .rosimage import array_to_image_fields
 from ..stereo.images import mask_image
+from ..stereo.postprocess import valid_window
 
-OUTPUTS = ('disparity', 'gcp_mask', 'confidence', 'depth', 'points2')
+OUTPUTS = ('disparity', 'gcp_mask', 'confidence', 'disparity_confidence', 'depth', 'points2')
 FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
 
 
@@ -32,7 +33,8 @@ def output_messages(types, header, wanted, result, config, model, left, use_colo
 
     `result` is the pipeline's StereoResult, `model` the camera.StereoModel (None: no
     calibration, so no depth or points2 and f = t = 0), `left` the left image array the
-    pipeline matched (the colour of points2). gcp_mask and confidence exist only with GCPs.
+    pipeline matched (the colour of points2). gcp_mask and confidence exist only with GCPs,
+    disparity_confidence only with a confidence fit (StereoResult.confidence).
     """
     out = {}
     if 'disparity' in wanted:
@@ -44,6 +46,9 @@ def output_messages(types, header, wanted, result, config, model, left, use_colo
                                             data)
         if 'confidence' in wanted:
             out['confidence'] = image_message(types, header, result.cof_c, '32FC1', data)
+    if result.confidence is not None and 'disparity_confidence' in wanted:
+        out['disparity_confidence'] = image_message(types, header, result.confidence, '32FC1',
+                                                    data)
     if model is not None:
         if 'depth' in wanted:
             out['depth'] = image_message(types, header, model.depth(result.disparity),
@@ -60,27 +65,27 @@ def disparity_message(types, header, disp, config, model=None, data=_same):
 
     As stereo_image_proc: the published disparity is d - (cx_left - cx_right), so that
     Z = f * t / d, with f and t of the camera model (0 without one), and min_disparity,
-    max_disparity bound the values the search could give. NaN = invalid, published as
-    min_disparity - 1 as the message definition asks. valid_window is the region where
-    the matching window and every searched disparity stay inside both images, in
-    full-size pixels when the pipeline matched at 1 / `config.downsample` resolution.
+    max_disparity bound the values the search could give (min_disparity is never -0.0).
+    Invalid pixels (NaN in `disp`) are published as min_disparity - 1, the one value below
+    the range: what stereo_image_proc publishes (OpenCV's invalid value), what its
+    point_cloud node (reprojectImageTo3D's missing values) and disparity_view read as
+    invalid. valid_window is the region where the matching window stays inside the image
+    (postprocess.valid_window): no valid disparity lies outside it.
     """
-    scale = config.downsample
-    border = config.window // 2 * scale
     h, w = disp.shape
     offset = np.float32(model.cx_offset if model is not None else 0.0)
-    low, high = -offset, np.float32(config.max_disp - 1) - offset
+    low, high = np.float32(0.0) - offset, np.float32(config.max_disp - 1) - offset
     out = disp - offset
     out[np.isnan(out)] = low - 1
-    left = min((config.matched_disp - 1) * scale + border, w)
-    roi = types.RegionOfInterest(x_offset=left, y_offset=border, width=max(w - border - left, 0),
-                                 height=max(h - 2 * border, 0), do_rectify=False)
+    x0, y0, x1, y1 = valid_window(config, (h, w))
+    roi = types.RegionOfInterest(x_offset=x0, y_offset=y0, width=x1 - x0, height=y1 - y0,
+                                 do_rectify=False)
     return types.DisparityImage(
         header=header, image=image_message(types, header, out, '32FC1', data),
         f=float(model.fx) if model is not None else 0.0,
         t=float(model.baseline) if model is not None else 0.0,
         valid_window=roi, min_disparity=float(low), max_disparity=float(high),
-        delta_d=scale / 16 if config.subpixel else float(scale))
+        delta_d=config.downsample / 16 if config.subpixel else float(config.downsample))
 
 
 def image_message(types, header, array, encoding, data=_same):

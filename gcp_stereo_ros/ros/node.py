@@ -5,9 +5,13 @@ Follows stereo_image_proc's disparity and point_cloud nodes. Subscribes `left/im
 `right/image_rect` (mono8, mono16, rgb8, bgr8, rgba8, bgra8; `<topic>/compressed` with
 `image_transport: compressed`; `left/image_raw`, `right/image_raw` with `rectify: true`)
 and `left/camera_info`, `right/camera_info`; publishes, stamped with the left header,
-`disparity` (stereo_msgs/DisparityImage), `gcp_mask` (mono8, 255 = GCP) and, only while
-subscribed, `confidence` (32FC1 CNN confidence), `depth` (32FC1 metres, REP 118) and
-`points2` (organized sensor_msgs/PointCloud2), and /diagnostics once a second.
+`disparity` (stereo_msgs/DisparityImage; invalid pixels min_disparity - 1, as
+stereo_image_proc's), `gcp_mask` (mono8, 255 = GCP) and, only while subscribed,
+`confidence` (32FC1 CNN confidence), `disparity_confidence` (32FC1 probability that the
+published disparity is within 3 px; 0 where none is published), `depth` (32FC1 metres,
+REP 118, NaN where invalid) and `points2` (organized sensor_msgs/PointCloud2, NaN where
+invalid), and /diagnostics once a second. Each image is paired with the camera_info of its
+stamp.
 Parameters (config/gcp_stereo.yaml) are live.
 
 Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
@@ -39,7 +43,7 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import Image, PointCloud2, PointField, RegionOfInterest
 from stereo_msgs.msg import DisparityImage
 
-from .camera import Rectifier, stereo_model
+from .camera import camera_model, depth_scale, Rectifier
 from .diagnostics import cnn_precision, Diagnostics
 from .live_params import LiveParameters
 from .messages import output_messages, OUTPUTS
@@ -52,7 +56,8 @@ from ..stereo.pipeline import mmap_large_arrays
 
 LOG_PERIOD = 5.0  # seconds between two logs of the same text
 STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
-ON_DEMAND = ('confidence', 'depth', 'points2')  # computed only while subscribed
+# computed only while subscribed
+ON_DEMAND = ('confidence', 'disparity_confidence', 'depth', 'points2')
 
 
 class _Types:
@@ -95,7 +100,7 @@ class GcpStereoNode(Node):
         # As image_pipeline's publishers on Jazzy: reliable, depth 1, QoS overridable.
         qos = QoSOverridingOptions.with_default_policies()
         types = {'disparity': DisparityImage, 'gcp_mask': Image, 'confidence': Image,
-                 'depth': Image, 'points2': PointCloud2}
+                 'disparity_confidence': Image, 'depth': Image, 'points2': PointCloud2}
         self._pubs = {name: self.create_publisher(types[name], name, 1,
                                                   qos_overriding_options=qos)
                       for name in OUTPUTS}
@@ -131,8 +136,8 @@ class GcpStereoNode(Node):
         elif any(n in SYNC_PARAMS for n in names):
             self.input.reset_sync(values)
 
-    def _on_pair(self, stamp, left_msg, right_msg):
-        self._worker.put((stamp, left_msg, right_msg))
+    def _on_pair(self, stamp, left_msg, right_msg, info):
+        self._worker.put((stamp, left_msg, right_msg, info))
 
     def _log(self, severity, text, detail=''):
         """
@@ -160,18 +165,18 @@ class GcpStereoNode(Node):
             self._warned.add(text)
             self.get_logger().warn(text)
 
-    def _process(self, stamp, left_msg, right_msg):
+    def _process(self, stamp, left_msg, right_msg, info):
         pipeline = self.params.pipeline
         values = self.params.values
         topics = self.input.topics()
-        info = dict(self.input.info)
         try:
             left, right = (message_to_array(msg, topics[side])
                            for side, msg in (('left', left_msg), ('right', right_msg)))
             if values['rectify']:
                 left, right = (self._rectifier(side, info[side], image, topics[side])
                                for side, image in (('left', left), ('right', right)))
-            result = pipeline(left, right, cancel=self._cancel)
+            model, why = camera_model(info, left.shape, pipeline.config)
+            result = pipeline(left, right, cancel=self._cancel, camera=depth_scale(model))
         except Cancelled:
             return  # shutting down
         except Exception as err:  # bad input or a pair over memory_limit_mb: say why
@@ -179,7 +184,8 @@ class GcpStereoNode(Node):
                       f'stamp {stamp} ns')
             return
         try:
-            self._publish(left_msg.header, result, pipeline.config, info, left, topics, values)
+            self._publish(left_msg.header, result, pipeline.config, info, model, why, left,
+                          topics, values)
         except Exception as err:
             if self.context.ok():
                 self._log('error', f'cannot publish the outputs: {err}', f'stamp {stamp} ns')
@@ -190,17 +196,14 @@ class GcpStereoNode(Node):
         self.processed += 1
         self._log_progress(result.seconds)
 
-    def _publish(self, header, result, config, info, left, topics, values):
+    def _publish(self, header, result, config, info, model, why, left, topics, values):
         wanted = {'disparity', 'gcp_mask'} | {
             n for n in ON_DEMAND if self._pubs[n].get_subscription_count() > 0}
-        try:
-            model = stereo_model(info['left'], info['right'], left.shape, config.max_disp)
-        except ValueError as err:
-            model = None
+        if model is None:
             if None not in info.values():  # calibrated, but wrongly: say so while it lasts
-                self._log('warn', f'camera_info ignored (no f, t, depth or points2): {err}')
+                self._log('warn', f'camera_info ignored (no f, t, depth or points2): {why}')
             elif wanted & {'depth', 'points2'}:
-                self._warn_once(f'no depth or points2: {err}')
+                self._warn_once(f'no depth or points2: {why}')
         if not header.frame_id:
             self._warn_once(f'{topics["left"]}: empty frame_id; outputs carry it as they are')
         msgs = output_messages(_Types, header, wanted, result, config, model, left,

@@ -79,10 +79,32 @@ PARAMS = (
     Param('bf16', _D.bf16, "bfloat16 CNN descriptors: true, false or 'auto' (on where native: "
           'CPUs with avx512_bf16 or AMX, CUDA)', 'bf16', dynamic=True),
     Param('subpixel', _D.subpixel, 'parabola fit for sub-pixel disparities', 'subpixel'),
-    Param('lr_check', _D.lr_check,
-          'left-right consistency check (invalid pixels published as min_disparity - 1)',
-          'lr_check'),
     Param('median', _D.median, '3x3 median filter on the disparity', 'median'),
+    # Invalidation (stereo.postprocess): invalid pixels are published as min_disparity - 1,
+    # NaN in depth and points2.
+    Param('valid_window', _D.valid_window,
+          'invalidate where the search was cut short: within window / 2 of the image edge, '
+          'and left of x = max_disparity - 1 (fewer candidates) where the winner is at the '
+          'end of its range', 'valid_window'),
+    Param('lr_check', _D.lr_check, "invalidate where the right view's winner is more than "
+          '1 px from the disparity (left-right check)', 'lr_check'),
+    Param('uniqueness_ratio', _D.uniqueness_ratio,
+          'invalidate where a disparity more than 1 px from the winner has a summed SGM cost '
+          "less than this many percent above the winner's (OpenCV's uniquenessRatio; 0 = off)",
+          'uniqueness_ratio', (0.0, 99.0, 0.0)),
+    Param('speckle_size', _D.speckle_size,
+          'invalidate regions of at most this many pixels, neighbours within speckle_range '
+          '(as stereo_image_proc; 0 = off)', 'speckle_size', (0, 1000000, 1)),
+    Param('speckle_range', _D.speckle_range, 'largest disparity difference in px of two '
+          'neighbours of one speckle region', 'speckle_range', (0, 1024, 1)),
+    Param('min_depth', _D.min_depth, 'invalidate depths below this many metres (with '
+          'camera_info; 0 = no limit)', 'min_depth', (0.0, 1e6, 0.0)),
+    Param('max_depth', _D.max_depth, 'invalidate depths beyond this many metres (with '
+          'camera_info; 0 = no limit)', 'max_depth', (0.0, 1e6, 0.0)),
+    Param('min_confidence', _D.min_confidence,
+          'invalidate where disparity_confidence, the calibrated probability that the '
+          'disparity is within 3 px of the truth, is below this (0 = off)', 'min_confidence',
+          (0.0, 1.0, 0.0)),
     Param('downsample', _D.downsample,
           'match at 1/N resolution (1, 2 or 4): both images area-binned, max_disparity / N; '
           'outputs at full size, disparities in full-size pixels', 'downsample',

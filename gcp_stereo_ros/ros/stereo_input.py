@@ -18,7 +18,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from .graph import shm_segment_bytes
 from .messages import stamp_ns
 from .params import make_sync
-from .sync import other_side, SIDES
+from .sync import CameraInfos, other_side, SIDES
 
 STREAK_WARN = 10  # one side arriving this often in a row without its twin -> warning
 SHM_ADVICE = ('raise segment_size in the Fast DDS profile of every process of the graph '
@@ -54,9 +54,16 @@ class StereoInput:
     Subscribe the images and `<side>/camera_info` and pair the images by stamp.
 
     Image topics follow the parameters (see `image_topic`). Each pair goes to
-    `on_pair(stamp_ns, left_msg, right_msg)`; images are taken only while `idle()`, and
-    `wake()` has the executor look again. The newest camera_info of each side is kept in
-    `info`; `received` and `last_stamp` count and date the images taken, per side, and
+    `on_pair(stamp_ns, left_msg, right_msg, info)`, `info` {side: the camera_info of that
+    image's stamp} (sync.CameraInfos; None per side before any camera_info came). Once the
+    camera_info stamps are seen to follow the images' (or before the first camera_info
+    with `rectify`), a pair whose camera_info has not come yet waits for it; if the next
+    pair comes first, or a newer camera_info shows that its own never will, it goes with
+    the newest (warned). Camera_info stamped otherwise (a calibration sent once, say) is
+    used as it is, the newest.
+    Images are taken only while `idle()`, and `wake()` has the executor look again. The
+    newest camera_info of each side is `info`; `received` and `last_stamp` count and date
+    the images taken, per side, and
     `paired_at` is the time.monotonic() of the last pair. Images lost in transport or
     announced (by camera_info) larger than the shared-memory segment are warned about
     through `log(severity, text)`, which rate-limits.
@@ -73,7 +80,9 @@ class StereoInput:
         self.received = dict.fromkeys(SIDES, 0)
         self.last_stamp = dict.fromkeys(SIDES)
         self.paired_at = None
-        self.info = dict.fromkeys(SIDES)
+        self._waiting = None  # a pair waiting for its camera_info
+        self._stamped = False  # camera_info stamps have matched image stamps
+        self._recent = []  # the stamps {side: ns} of the last pairs
         self._info_subs = [node.create_subscription(
             CameraInfo, f'{side}/camera_info', lambda m, s=side: self._on_info(s, m),
             qos_profile_sensor_data, **self._qos) for side in SIDES]
@@ -84,6 +93,7 @@ class StereoInput:
         """(Re)subscribe the image topics the parameters ask for; start pairing afresh."""
         for sub in self.subs.values():
             self._node.destroy_subscription(sub)
+        self._rectify = values['rectify']
         kind = CompressedImage if values['image_transport'] == 'compressed' else Image
         self.subs = {side: self._node.create_subscription(
             kind, image_topic(side, values), lambda m, s=side: self._on_image(s, m),
@@ -96,9 +106,20 @@ class StereoInput:
         """Return the resolved image topic names, by side."""
         return {side: sub.topic_name for side, sub in self.subs.items()}
 
+    @property
+    def info(self):
+        """Return the newest camera_info of each side (None before the first)."""
+        return self.infos.newest
+
     def reset_sync(self, values):
         """Start pairing afresh with the sync parameters in `values`."""
         self.sync = make_sync(values)
+        newest = getattr(self, 'infos', None)
+        self.infos = CameraInfos(self.sync.tolerance_ns)
+        for side, msg in (newest.newest.items() if newest else ()):
+            if msg is not None:
+                self.infos.add(side, stamp_ns(msg.header), msg)
+        self._release(force=True)
 
     def wake(self):
         """Have the executor look at the image subscriptions again (any thread)."""
@@ -121,10 +142,36 @@ class StereoInput:
                 f'and the sync parameters{hint}.')
         if pair is not None:
             self.paired_at = time.monotonic()
-            self._on_pair(*pair)
+            self._release(force=True)
+            self._waiting = pair
+            self._release()
+
+    def _release(self, force=False):
+        """Hand the waiting pair on once its camera_info is here (or `force`: anyway)."""
+        if self._waiting is None:
+            return
+        stamp, left, right = self._waiting
+        stamps = {'left': stamp_ns(left.header), 'right': stamp_ns(right.header)}
+        if stamps not in self._recent:
+            self._recent = self._recent[-9:] + [stamps]
+        info = self.infos.match(stamps)
+        wait = self._stamped or (self._rectify and not self.infos.seen())
+        if info is None and (not wait or force or self.infos.passed(stamps)):
+            if wait:
+                self._log('warn', 'no camera_info stamped as the images (within the sync '
+                          'tolerance) came before the next pair: using the newest ones',
+                          f'stamp {stamp} ns')
+            info = dict(self.infos.newest)
+        if info is not None:
+            self._waiting = None
+            self._on_pair(stamp, left, right, info)
 
     def _on_info(self, side, msg):
-        self.info[side] = msg
+        stamp = stamp_ns(msg.header)
+        self.infos.add(side, stamp, msg)
+        tolerance = self.sync.tolerance_ns
+        self._stamped |= any(abs(s[side] - stamp) <= tolerance for s in self._recent)
+        self._release()
         if msg.width * msg.height > self._segment:  # even as mono8
             self._log('warn',
                       f'{self.topics()[side]}: its camera_info announces {msg.width}x'

@@ -133,3 +133,49 @@ def other_side(side):
     if side not in SIDES:
         raise ValueError(f"side must be 'left' or 'right', got {side!r}")
     return 'right' if side == 'left' else 'left'
+
+
+class CameraInfos:
+    """
+    The recent camera_info messages of each side, by stamp, to pair each image with its own.
+
+    As image_transport's camera subscribers do: an image goes with the camera_info of its
+    stamp (within `tolerance_ns`), whichever of the two was received first. `keep` messages
+    per side are kept (the newest stamps).
+    """
+
+    def __init__(self, tolerance_ns=0, keep=30):
+        self.tolerance_ns = tolerance_ns
+        self.keep = keep
+        self._by_stamp = {side: {} for side in SIDES}
+        self.newest = dict.fromkeys(SIDES)  # the newest camera_info received, per side
+
+    def add(self, side, stamp_ns, msg):
+        infos = self._by_stamp[side]
+        infos[stamp_ns] = msg
+        while len(infos) > self.keep:
+            del infos[min(infos)]
+        self.newest[side] = msg
+
+    def seen(self):
+        """Return True once both sides have sent a camera_info."""
+        return None not in self.newest.values()
+
+    def match(self, stamps):
+        """
+        Return {side: the camera_info of its stamp in `stamps` ({side: ns})}, or None.
+
+        None while a side has none within the tolerance yet.
+        """
+        out = {}
+        for side, stamp in stamps.items():
+            near = [s for s in self._by_stamp[side] if abs(s - stamp) <= self.tolerance_ns]
+            if not near:
+                return None
+            out[side] = self._by_stamp[side][min(near, key=lambda s: abs(s - stamp))]
+        return out
+
+    def passed(self, stamps):
+        """Return True if a side's newest camera_info is stamped after its `stamps` entry."""
+        return any(self._by_stamp[side] and max(self._by_stamp[side]) > stamp + self.tolerance_ns
+                   for side, stamp in stamps.items())

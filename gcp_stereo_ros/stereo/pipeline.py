@@ -10,12 +10,14 @@ import math
 import re
 import time
 
+import cv2
 import numpy as np
 
 from . import cost as cost_mod
 from .gcp import refine, select
 from .images import bin_area, gray_pair, mean_std, upsample
-from .sgm import aggregate, directions, disparity, finish, path_sum_bound, PATHS
+from .postprocess import Confidence, features, invalidate, margin
+from .sgm import aggregate, directions, path_sum_bound, PATHS, winners
 
 MIB = 1 << 20
 
@@ -34,6 +36,11 @@ PAPER = {
     'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001,
             'gcp_lr_check': False},
 }
+# Every invalidation off (stereo.postprocess). The paper published every integer WTA
+# disparity: its preset has this and no sub-pixel fit.
+UNFILTERED = {'valid_window': False, 'lr_check': False, 'uniqueness_ratio': 0.0,
+              'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0, 'min_confidence': 0.0}
+PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False} for cost, values in PAPER.items()}
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
 DOWNSAMPLE = (1, 2, 4)
 
@@ -58,9 +65,19 @@ class StereoConfig:
     # or AMX, CUDA; see cnn.bf16_native). 3-4x faster CNN; on the validation frames the
     # defaults' error rates moved by at most 0.061 point (README, "Speed").
     bf16: bool | str = 'auto'
-    subpixel: bool = False
-    lr_check: bool = False
+    subpixel: bool = True
     median: bool = False
+    # Invalidation (stereo.postprocess; README "What is published"), chosen on the validation
+    # frames; 0 / False turns each off. The left-right check is off: on the validation frames
+    # 89 % of the pixels it rejects are right; its agreement is a confidence feature instead.
+    valid_window: bool = True
+    lr_check: bool = False
+    uniqueness_ratio: float = 1.0  # percent, OpenCV's uniquenessRatio
+    speckle_size: int = 100  # pixels, stereo_image_proc's speckle_size
+    speckle_range: int = 4  # px, stereo_image_proc's speckle_range
+    min_depth: float = 0.3  # metres, with a camera model; 0 = no limit
+    max_depth: float = 0.0
+    min_confidence: float = 0.88  # on the calibrated confidence of the disparity
     # Match at 1/downsample of the resolution (area-binned images, max_disp / downsample);
     # the outputs come back at full size, disparities in full-size pixels.
     downsample: int = 1
@@ -100,6 +117,24 @@ class StereoConfig:
                              f'got {self.theta}')
         if self.c_low > self.c_hi:
             raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
+        for name in ('uniqueness_ratio', 'speckle_range', 'min_depth', 'max_depth',
+                     'min_confidence'):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                    and math.isfinite(value) and value >= 0):
+                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
+        if self.uniqueness_ratio >= 100:
+            raise ValueError('uniqueness_ratio must be below 100 (percent), '
+                             f'got {self.uniqueness_ratio}')
+        if not (isinstance(self.speckle_size, (int, np.integer))
+                and not isinstance(self.speckle_size, bool) and self.speckle_size >= 0):
+            raise ValueError(f'speckle_size must be an integer >= 0, got {self.speckle_size!r}')
+        if self.max_depth and self.max_depth <= self.min_depth:
+            raise ValueError(f'max_depth ({self.max_depth}) must be above min_depth '
+                             f'({self.min_depth}), or 0 for no limit')
+        if self.min_confidence > 1:
+            raise ValueError('min_confidence must be in [0, 1] (a probability), '
+                             f'got {self.min_confidence}')
         if not (isinstance(self.bf16, bool) or self.bf16 == 'auto'):  # 1 == True, but no
             raise ValueError(f"bf16 must be true, false or 'auto', got {self.bf16!r}")
         if not (self.device == 'cpu' or re.fullmatch(r'cuda(:\d+)?', self.device)):
@@ -128,6 +163,11 @@ class StereoResult:
     cof_d: np.ndarray | None  # int32 (H, W) CNN disparity argmax_d Vol
     cof_dr: np.ndarray | None  # int32 (H, W) right view's CNN disparity (see cnn.confidence)
     seconds: dict  # wall time per stage
+    # float32 (H, W) P(disparity within 3 px of the truth) (postprocess.Confidence), 0 where
+    # not published; None where no fit exists for the method and weights
+    confidence: np.ndarray | None = None
+    consistent: np.ndarray | None = None  # bool (H, W) left-right agreement (sgm.winners)
+    margin: np.ndarray | None = None  # float32 (H, W) SGM cost margin (postprocess.margin)
 
 
 def fixed_point_scale(cfg):
@@ -278,6 +318,7 @@ class StereoPipeline:
             check_device(self.config.device)
         self._net = net
         self._workspace = {} if _workspace is None else _workspace
+        self.fit = Confidence.load(self.config)  # the confidence fit, None if none
 
     def with_config(self, config):
         """
@@ -318,15 +359,16 @@ class StereoPipeline:
             self._net = load_net(self.config.weights or None, device)
         return self._net
 
-    def __call__(self, left, right, confidence=None, cancel=None):
+    def __call__(self, left, right, confidence=None, cancel=None, camera=None):
         """
         Return the StereoResult of a pair.
 
         `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair, max_disp and
         downsample, as its StereoResult holds them, to sweep GCP/SGM parameters without
         running the CNN again. `cancel`: a CancelFlag that another thread may set to stop the
-        run (raises Cancelled within a row of a CPU kernel or a CNN layer). Raises
-        ValueError for bad input or a pair that needs more than memory_limit_mb.
+        run (raises Cancelled within a row of a CPU kernel or a CNN layer). `camera`: (f * T
+        in px m, cx_left - cx_right in px) for min_depth / max_depth (None: not applied).
+        Raises ValueError for bad input or a pair that needs more than memory_limit_mb.
         """
         cfg = self.config
         if cfg.use_gcp and confidence is not None and len(confidence) != 3:
@@ -360,18 +402,36 @@ class StereoPipeline:
             outputs = self._match(left, right, confidence, lap, seconds, cancel)
         else:
             outputs = self._match_cuda(left, right, confidence, lap, seconds)
+        disp, consistent, s_best, s_second, gcp, cof_c, cof_d, cof_dr = outputs
+        m = margin(s_best, s_second)
+        del s_best, s_second
+        if cfg.median:
+            disp = cv2.medianBlur(disp, 3)
         if f > 1:  # back to full size, disparities in full-size pixels
-            disp, gcp, cof_c, cof_d, cof_dr = outputs
             disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
                                    for a in (disp, cof_d, cof_dr))
-            outputs = tuple(None if a is None else upsample(a, f, shape)
-                            for a in (disp, gcp, cof_c, cof_d, cof_dr))
+            disp, consistent, m, gcp, cof_c, cof_d, cof_dr = (
+                None if a is None else upsample(a, f, shape)
+                for a in (disp, consistent, m, gcp, cof_c, cof_d, cof_dr))
             lap('upsample')
+        sure = None
+        if self.fit is not None:
+            sure = self.fit(features(disp, consistent, m, cof_c, cof_d, gcp))
+            lap('disparity_confidence')
+        invalidate(disp, consistent, m, cfg, camera, sure)
+        if sure is not None:
+            sure[np.isnan(disp)] = 0.0
+        lap('invalidate')
         _glibc('malloc_trim', 0)  # the heap blocks this pair freed (see mmap_large_arrays)
-        return StereoResult(*outputs, seconds)
+        return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds, sure, consistent, m)
 
     def _match(self, left, right, confidence, lap, seconds, cancel):
-        """Return (disparity, gcp, cof_c, cof_d, cof_dr) of a gray pair, on the CPU."""
+        """
+        Return (disparity, consistent, s_best, s_second, gcp, cof_c, cof_d, cof_dr), on the CPU.
+
+        The first four are `sgm.winners`' outputs (the left-right agreement always computed,
+        for the confidence).
+        """
         cfg = self.config
         nd = cfg.matched_disp
         shape = left.shape + (nd,)
@@ -397,9 +457,9 @@ class StereoPipeline:
                           cancel)
         self._workspace.update(cost=volume, total=total)
         lap('sgm')
-        disp = disparity(total, cfg.subpixel, cfg.lr_check, cfg.median, cancel)
+        wta = winners(total, cfg.subpixel, True, cancel)
         lap('wta')
-        return disp, gcp, cof_c, cof_d, cof_dr
+        return (*wta, gcp, cof_c, cof_d, cof_dr)
 
     def _match_cuda(self, left, right, confidence, lap, seconds):
         """
@@ -454,11 +514,11 @@ class StereoPipeline:
                               self._array('cuda_total', shape, vtype))
             self._workspace.update(cuda_cost=volume, cuda_total=total)
             stage('sgm')
-            disp, consistent = winners(total, cfg.subpixel, cfg.lr_check)[:2]
+            wta = winners(total, cfg.subpixel, True)  # disp, consistent, s_best, s_second
             stage('wta')
             fresh = cof if cfg.use_gcp and confidence is None else []
-            disp, consistent, gcp, *fresh = (None if a is None else a.cpu().numpy()
-                                             for a in (disp, consistent, gcp, *fresh))
+            wta, fresh = ([a.cpu().numpy() for a in arrays] for arrays in (wta, fresh))
+            gcp = None if gcp is None else gcp.cpu().numpy()
             lap('download')
         cof_c, cof_d, cof_dr = fresh or confidence or (None,) * 3
-        return finish(disp, consistent, cfg.median), gcp, cof_c, cof_d, cof_dr
+        return (*wta, gcp, cof_c, cof_d, cof_dr)

@@ -326,7 +326,7 @@ def parabola_offset(lo, mid, hi):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _wta(total, subpixel, lr_tol, out, consistent, cancel):
+def _wta(total, subpixel, lr_tol, out, consistent, s_best, s_second, cancel):
     h, w, nd = total.shape
     for y in prange(h):
         if cancel[0]:
@@ -338,6 +338,12 @@ def _wta(total, subpixel, lr_tol, out, consistent, cancel):
             best = 0
             while keys[best] != m:
                 best += 1
+            rival = np.inf  # min S(d) over |d - best| > 1: the best match not beside the winner
+            for d in range(nd):
+                if abs(d - best) > 1 and s[d] < rival:
+                    rival = s[d]
+            s_best[y, x] = s[best]
+            s_second[y, x] = rival
             offset = 0.0
             if subpixel and 0 < best < nd - 1:
                 offset = parabola_offset(s[best - 1], s[best], s[best + 1])
@@ -353,27 +359,39 @@ def _wta(total, subpixel, lr_tol, out, consistent, cancel):
             out[y, x] = best + offset
 
 
-def disparity(total, subpixel=False, lr_check=False, median=False, cancel=None):
+def winners(total, subpixel=False, lr_check=False, cancel=None):
     """
-    Return the winner-takes-all disparity, float32 (H, W), from summed path costs S.
+    Return (disparity, consistent, s_best, s_second): the winner-takes-all of summed costs S.
 
     S is uint16, or finite and >= 0 as `aggregate` returns them (ValueError otherwise); the
-    first minimum wins on ties.
-
-    Options (all off by default; the paper uses none): `subpixel` parabola fit through the
-    minimum and its neighbours; `median` 3x3 median filter; `lr_check` marks NaN where the
-    right-view winner at x - d differs from d by more than 1 px (applied after the median,
-    so invalid pixels stay NaN). `cancel`: a CancelFlag; once set, the remaining rows are
-    skipped.
+    first minimum wins on ties. float32 (H, W) disparity (with `subpixel`, a parabola fit
+    through the minimum and its neighbours); bool (H, W) `consistent`, False where the
+    right-view winner at x - d differs from d by more than 1 px (all True without
+    `lr_check`); float32 (H, W) `s_best` = S(d) of the winner and `s_second` = the least
+    S(d) over |d - winner| > 1 (inf where no such d exists), which the uniqueness test and
+    the confidence use. `sgm_cuda.winners` is the GPU twin. `cancel`: a CancelFlag; once
+    set, the remaining rows are skipped.
     """
     total = as_volume(np.asarray(total))
     bad = _scan(total)[0] if total.dtype == np.float32 else 0
     if bad:
         raise ValueError(f'summed path costs have {bad} cells that are negative, NaN or infinite')
-    out = np.empty(total.shape[:2], np.float32)
+    out, s_best, s_second = (np.empty(total.shape[:2], np.float32) for _ in range(3))
     consistent = np.ones(total.shape[:2], np.bool_)
-    _wta(total, subpixel, 1 if lr_check else -1, out, consistent, flag_array(cancel))
-    return finish(out, consistent, median)
+    _wta(total, subpixel, 1 if lr_check else -1, out, consistent, s_best, s_second,
+         flag_array(cancel))
+    return out, consistent, s_best, s_second
+
+
+def disparity(total, subpixel=False, lr_check=False, median=False, cancel=None):
+    """
+    Return the winner-takes-all disparity, float32 (H, W), from summed path costs S.
+
+    `winners`' disparity after the optional 3x3 `median`, NaN where `lr_check` finds it
+    inconsistent (applied after the median, so invalid pixels stay NaN).
+    """
+    disp, consistent = winners(total, subpixel, lr_check, cancel)[:2]
+    return finish(disp, consistent, median)
 
 
 def finish(disp, consistent, median):

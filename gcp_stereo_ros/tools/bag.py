@@ -60,11 +60,11 @@ from ..evaluation.datasets import list_frames, load_frames
 from ..evaluation.metrics import error_rates, THRESHOLDS
 from ..evaluation.viz import colorize, save_png
 from ..ros import messages
-from ..ros.camera import Rectifier, stereo_model
+from ..ros.camera import camera_model, depth_scale, Rectifier
 from ..ros.graph import shm_segment_bytes
 from ..ros.params import config_from_params, config_warnings, load_params_file, make_sync
 from ..ros.rosimage import array_to_compressed_fields, image_to_array, message_to_array
-from ..ros.sync import SIDES
+from ..ros.sync import CameraInfos, SIDES
 from ..stereo.images import mask_image
 from ..stereo.pipeline import mmap_large_arrays, StereoPipeline
 
@@ -89,8 +89,8 @@ DEFAULT_QOS = _qos(QosReliability.RELIABLE, 10)  # rclpy's default publisher QoS
 NODE_OUT_QOS = _qos(QosReliability.RELIABLE, 1)  # the node's publishers
 GT = {'gt/frame_name': (STRING, DEFAULT_QOS), 'gt/disparity': (IMAGE, DEFAULT_QOS),
       'gt/valid': (IMAGE, DEFAULT_QOS)}
-OUTPUTS = {'disparity': DISPARITY, 'gcp_mask': IMAGE, 'confidence': IMAGE, 'depth': IMAGE,
-           'points2': POINTS}
+OUTPUTS = {'disparity': DISPARITY, 'gcp_mask': IMAGE, 'confidence': IMAGE,
+           'disparity_confidence': IMAGE, 'depth': IMAGE, 'points2': POINTS}
 IMAGE_TYPES = (IMAGE, COMPRESSED)
 MATCH_SETTLE_SECONDS = 3.0  # see wait_for_subscribers
 # Before exiting: a player exiting right after publishing lost its last best-effort
@@ -335,11 +335,12 @@ def find_topics(reader, path, args):
     return topics
 
 
-RATE_KEYS = [f'bad{t}' for t in THRESHOLDS] + ['mae']
+RATE_KEYS = [f'bad{t}' for t in THRESHOLDS] + ['mae', 'density', 'bad3_published',
+                                               'near3_published']
 
 
 def print_rates(label, rates):
-    tqdm.write(''.join(f'{rates[k]:8.2f}' for k in RATE_KEYS) + f'  {label}')
+    tqdm.write(''.join(f'{rates[k]:{len(k) + 2}.2f}' for k in RATE_KEYS) + f'  {label}')
 
 
 def warn(text):
@@ -347,14 +348,23 @@ def warn(text):
 
 
 class Runner:
-    """Turns input messages into output messages, pair by pair, as the node does."""
+    """
+    Turns input messages into output messages, pair by pair, as the node does.
+
+    Each pair goes with the camera_info of its images' stamps (sync.CameraInfos), recorded
+    before or after them: when the bag has both camera_info topics, a pair waits for them;
+    one whose camera_info never comes (a newer one did, or the bag ended) takes the newest,
+    with a warning.
+    """
 
     def __init__(self, pipeline, sync, writer, topics, values, outputs, rectify, png_dir):
         self.pipeline, self.sync, self.writer, self.png_dir = pipeline, sync, writer, png_dir
         self.topics, self.values, self.outputs, self.rectify = topics, values, outputs, rectify
         self.conns = {}
         self.rectifier = Rectifier()
-        self.info = dict.fromkeys(SIDES)
+        self.infos = CameraInfos(sync.tolerance_ns)
+        self.wait = bool(topics.get('left_info') and topics.get('right_info'))
+        self.waiting = []  # (stamp, left_msg, right_msg, timestamp) waiting for camera_info
         self.gt = {}  # bag timestamp -> {'gt/...': message} until its pair comes
         self.rates = []
         self.warned = set()
@@ -366,16 +376,34 @@ class Runner:
         if role.startswith('gt/'):
             self.gt.setdefault(timestamp, {})[role] = msg
         elif role.endswith('_info'):
-            self.info[role.removesuffix('_info')] = msg
+            self.infos.add(role.removesuffix('_info'), messages.stamp_ns(msg.header), msg)
+            self.release()
         else:
             pair = self.sync.add(role, messages.stamp_ns(msg.header), msg, len(msg.data))
             if pair is not None:
-                self.process(*pair, timestamp)
+                self.waiting.append((*pair, timestamp))
+                self.release()
 
-    def image(self, side, msg):
+    def release(self, end=False):
+        """Process the waiting pairs, in order, whose camera_info is here (`end`: all)."""
+        while self.waiting:
+            stamp, left, right, timestamp = self.waiting[0]
+            stamps = {'left': messages.stamp_ns(left.header),
+                      'right': messages.stamp_ns(right.header)}
+            info = self.infos.match(stamps) if self.wait else dict(self.infos.newest)
+            if info is None and (end or self.infos.passed(stamps)):
+                info = dict(self.infos.newest)
+                self.warn_once('a pair without camera_info of its stamp (within the sync '
+                               'tolerance) took the newest camera_info')
+            if info is None:
+                return
+            self.waiting.pop(0)
+            self.process(stamp, left, right, timestamp, info)
+
+    def image(self, side, msg, info):
         image = message_to_array(msg, self.topics[side])
         if self.rectify:
-            return self.rectifier(side, self.info[side], image, self.topics[side])
+            return self.rectifier(side, info[side], image, self.topics[side])
         return image
 
     def warn_once(self, text):
@@ -383,25 +411,22 @@ class Runner:
             self.warned.add(text)
             warn(text)
 
-    def process(self, stamp, left_msg, right_msg, timestamp):
+    def process(self, stamp, left_msg, right_msg, timestamp, info):
         config = self.pipeline.config
         try:
-            left, right = self.image('left', left_msg), self.image('right', right_msg)
-            result = self.pipeline(left, right)
+            left, right = self.image('left', left_msg, info), self.image('right', right_msg, info)
+            model, why = camera_model(info, left.shape, config)
+            result = self.pipeline(left, right, camera=depth_scale(model))
         except ValueError as err:  # as the node: say why, go on with the next pair
             self.skipped += 1
             tqdm.write(f'{PROG}: skipping pair at stamp {stamp} ns: {err}', file=sys.stderr)
             return
         self.processed += 1
-        try:
-            model = stereo_model(self.info['left'], self.info['right'], left.shape,
-                                 config.max_disp)
-        except ValueError as err:
-            model = None
-            if None not in self.info.values():  # calibrated, but wrongly
-                self.warn_once(f'camera_info ignored (no f, t, depth or points2): {err}')
+        if model is None:
+            if None not in info.values():  # calibrated, but wrongly
+                self.warn_once(f'camera_info ignored (no f, t, depth or points2): {why}')
             elif {'depth', 'points2'} & self.outputs:
-                self.warn_once(f'no depth or points2: {err}')
+                self.warn_once(f'no depth or points2: {why}')
         out = messages.output_messages(
             TYPES, left_msg.header, self.outputs, result, config, model, left,
             self.values.get('use_color', True), not self.values.get('avoid_point_cloud_padding'))
@@ -476,7 +501,7 @@ def convert(pipeline, values, args):
                                               offered_qos_profiles=c.ext.offered_qos_profiles)
                   for c in reader.connections if c.topic not in replaced}
         if any(types.get(t) for t, r in roles.items() if r == 'gt/disparity'):
-            tqdm.write(''.join(f'{k:>8}' for k in RATE_KEYS) + '  frame')
+            tqdm.write(''.join(f'  {k}' for k in RATE_KEYS) + '  frame')
         lefts = sum(c.msgcount for c in reader.connections if c.topic == topics['left'])
         with tqdm(total=lefts, unit='pair', leave=False) as bar:
             for conn, timestamp, raw in read_messages(reader, args.inp):
@@ -486,6 +511,7 @@ def convert(pipeline, values, args):
                     runner.add(roles[conn.topic], deserialize(raw, conn, timestamp, args.inp),
                                timestamp)
                     bar.update(sync.pairs - bar.n)
+            runner.release(end=True)
         if sync.pairs == 0:
             raise ValueError(f'{args.inp}: no left/right image pair with matching stamps '
                              f'on {topics["left"]} and {topics["right"]}')
@@ -494,7 +520,10 @@ def convert(pipeline, values, args):
                              '(reasons above)')
     if runner.rates:
         print_rates('mean', {k: float(np.mean([r[k] for r in runner.rates])) for k in RATE_KEYS})
-        print('(% of scored ground-truth pixels with error > N px; mae in px)')
+        print('(badN: % of scored ground-truth pixels with error > N px, unpublished ones '
+              'filled as the KITTI devkit does; density: % of them published; '
+              'bad3_published, near3_published: % of the published with error > 3 px, '
+              'more than 3 px too near; mae in px over the published)')
     print(f'{args.out}: {runner.processed} pairs of {topics["left"]} + {topics["right"]} '
           f'processed ({", ".join(sorted(runner.conns))} written), {runner.skipped} skipped; '
           f'images without a twin skipped: left {sync.dropped_left}, right {sync.dropped_right}')

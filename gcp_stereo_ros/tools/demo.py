@@ -87,13 +87,14 @@ def main(argv=None):
                      colorize(disp, disp_msg.max_disparity - disp_msg.min_disparity + 1))
             save_png(args.out / f'{stem}_gcp_mask.png', mask_image(gcp))
             rows.append((name, error_rates(disp, frame.gt, frame.valid), 100 * gcp.mean()))
-    print(f'\n{"frame":<22}{"bad1":>7}{"bad2":>7}{"bad3":>7}{"bad5":>7}{"mae":>7}'
-          f'{"GCPs %":>8}')
+    keys = ('bad1', 'bad2', 'bad3', 'bad5', 'mae', 'density', 'bad3_published')
+    print(f'\n{"frame":<22}' + ''.join(f'{k.replace("_published", "pub"):>9}' for k in keys)
+          + f'{"GCPs %":>8}')
     for name, r, density in rows:
-        print(f'{name:<22}'
-              + ''.join(f'{r[k]:7.2f}' for k in ('bad1', 'bad2', 'bad3', 'bad5', 'mae'))
-              + f'{density:8.1f}')
-    print('(% of ground-truth pixels with error > N px; mae in px)')
+        print(f'{name:<22}' + ''.join(f'{r[k]:9.2f}' for k in keys) + f'{density:8.1f}')
+    print('(badN: % of ground-truth pixels with error > N px, unpublished ones filled as the '
+          'KITTI devkit does; density: % published; bad3pub: % of the published off by more '
+          'than 3 px; mae in px)')
     print(f'PNGs in {args.out}/; node exited with {node.returncode}')
 
 

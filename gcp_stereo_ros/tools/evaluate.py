@@ -2,7 +2,11 @@
 gcp-stereo-eval: error rates of the stereo methods on datasets with ground truth.
 
 Prints a table like the paper's Table 1 (% of ground-truth pixels with error > 3 px, per
-frame and mean) and optionally writes JSON rows and colour-mapped disparity PNGs.
+frame and mean; unpublished pixels filled by the KITTI devkit's background interpolation,
+as a KITTI submission is scored), then as KITTI reports them the density (% of ground-truth
+pixels published), bad3_published (% of published pixels off by more than 3 px) and
+near3_published (% of published pixels more than 3 px too near); the JSON rows also hold
+bad1/2/5 of both kinds and mae. Optionally writes colour-mapped disparity PNGs.
 """
 import argparse
 import fnmatch
@@ -32,8 +36,8 @@ def opencv_sgbm(left, right, max_disp, block=5):
     Return the peer's disparity: OpenCV StereoSGBM in MODE_HH (full 8-path SGM).
 
     The disparity is float32, NaN where invalid. Its own invalidating filters (uniqueness,
-    left-right, speckle) are off, as ours are by default; it still leaves no estimate where
-    x < max_disp can not be searched.
+    left-right, speckle) are off; it still leaves no estimate where x < max_disp can not be
+    searched (filled by background interpolation for bad1..bad5).
     """
     lg, rg = gray_pair(left, right)
     lo, hi = min(lg.min(), rg.min()), max(lg.max(), rg.max())
@@ -192,6 +196,8 @@ def evaluate_frame(runner, args, source, name):
 def print_results(rows, methods, notes):
     """Print the table of `rows` and the frames' notes ({frame name: note})."""
     print(table(rows, methods))
+    for key in ('density', 'bad3_published', 'near3_published'):
+        print(table(rows, methods, key))
     precisions = sorted({r['bf16'] for r in rows if 'bf16' in r})
     if precisions:
         print('CNN descriptors:', ' and '.join('bfloat16' if p else 'float32' for p in precisions))

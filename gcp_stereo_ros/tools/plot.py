@@ -6,6 +6,10 @@ gcp-stereo-plot: the paper's experiment figures as matplotlib PNGs.
          theta, c_hi, c_low, P1 and P2 are chosen by cross-validation.
   bars   per-frame improvement of +GCP over its baseline from a `gcp-stereo-eval --json`
          file (Figures 5 and 6).
+  sparsification
+         error (> 3 px) among the x % most confident published pixels against x, for the
+         disparity_confidence, the CNN confidence and the oracle (the error itself), mean
+         over the frames, and each curve's area: how confidence measures are compared.
 """
 import argparse
 import itertools
@@ -19,7 +23,7 @@ import numpy as np
 from .cli import console_main, positive_int
 from .evaluate import FIELDS, parse_overrides, Runner, select_frames
 from ..evaluation.datasets import load_frame
-from ..evaluation.metrics import error_rates
+from ..evaluation.metrics import error_rates, sparsification, sparsification_area
 from ..stereo.gcp import gcp_quality
 
 matplotlib.use('Agg')
@@ -124,6 +128,45 @@ def _plot_sweep(rows, grid, best, method, path):
     print(f'wrote {path}')
 
 
+def sparsify(args):
+    runner = Runner(args.paths, {**parse_overrides(args.set), 'min_confidence': 0.0})
+    curves = {'disparity_confidence': [], 'CNN confidence': [], 'oracle': []}
+    for source, name in select_frames(args.dataset, args.frames):
+        frame = load_frame(source, name)
+        _, result, _ = runner.run(args.method, frame.left, frame.right,
+                                  args.max_disp or frame.max_disp)
+        if result.confidence is None:
+            raise ValueError(f'{args.method}: no confidence fit beside the weights '
+                             '(python -m gcp_stereo_ros.tools.fit_confidence)')
+        sel = np.isfinite(result.disparity) & np.isfinite(frame.gt)
+        if frame.valid is not None:
+            sel &= frame.valid
+        err = np.abs(result.disparity[sel] - frame.gt[sel])
+        scores = {'disparity_confidence': result.confidence[sel], 'oracle': -err}
+        if result.cof_c is not None:
+            scores['CNN confidence'] = result.cof_c[sel]
+        for key, score in scores.items():
+            fractions, rates = sparsification(err > 3, score)
+            curves[key].append(rates)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for key, per_frame in curves.items():
+        if per_frame:
+            rates = np.mean(per_frame, axis=0)
+            area = sparsification_area(fractions, rates)
+            print(f'{key}: area {area:.3f}, error at 100 % {rates[-1]:.2f} %')
+            ax.plot(100 * fractions, rates, marker='.', label=f'{key} (area {area:.2f})')
+    ax.set_xlabel('most confident published pixels kept (%)')
+    ax.set_ylabel('error > 3 px among them (%)')
+    ax.set_title(f'{args.method}: sparsification, mean of {len(curves["oracle"])} frame(s)')
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / ('sparsification_' + args.method.replace('+', '_') + '.png')
+    fig.savefig(path, dpi=110)
+    print(f'wrote {path}')
+
+
 def bars(args):
     try:
         rows = json.loads(args.json.read_text())
@@ -178,6 +221,16 @@ def main(argv=None):
     bp.add_argument('--json', type=Path, required=True, help='a gcp-stereo-eval --json file')
     bp.add_argument('--out', type=Path, default=Path('out/plots'))
     bp.set_defaults(run=bars)
+    zp = sub.add_parser('sparsification', help='error of the most confident x %% against x')
+    zp.add_argument('--dataset', action='append', required=True)
+    zp.add_argument('--frames', nargs='+')
+    zp.add_argument('--method', choices=('census+gcp', 'sad+gcp', 'census', 'sad'),
+                    default='census+gcp')
+    zp.add_argument('--set', action='append', metavar='KEY=VALUE', help='parameter override')
+    zp.add_argument('--max-disp', type=positive_int)
+    zp.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
+    zp.add_argument('--out', type=Path, default=Path('out/plots'))
+    zp.set_defaults(run=sparsify)
     args = ap.parse_args(argv)
     args.run(args)
 

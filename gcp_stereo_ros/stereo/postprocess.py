@@ -1,0 +1,196 @@
+"""
+What of the winner-takes-all disparity to publish, and how sure each pixel is; ROS-free.
+
+`invalidate` marks NaN, in this order, the pixels
+- where the search was cut short (`valid_window`): within window // 2 of the image's edge
+  (the matching window leaves the image), and in the left band where fewer than max_disp
+  candidates exist (x < max_disp - 1: only d <= x was searched), where the winner lies at
+  the end of its range (d >= x - 1, so the minimum may lie beyond the range); a winner
+  inside its range is kept (on the KITTI validation frames 5.8 % of the band's pixels
+  are wrong, 4.2 % of the others: README "What is published");
+- that fail the left-right check (`lr_check`: the right view's winner at x - d is more than
+  1 px from d);
+- that fail the uniqueness test (`uniqueness_ratio` u, OpenCV's uniquenessRatio): invalid
+  where a disparity more than 1 px from the winner has S(d) * (100 - u) < S(winner) * 100;
+- whose depth is below `min_depth` or beyond `max_depth` metres (with a camera model);
+- whose calibrated confidence is below `min_confidence`;
+- in speckles (OpenCV's filterSpeckles with stereo_image_proc's meaning): connected regions
+  of at most `speckle_size` pixels, neighbours within `speckle_range` px of each other.
+A value of 0 (False) turns each off. The CPU and the CUDA pipeline give the same inputs
+(`sgm.winners`, `sgm_cuda.winners`), so both apply this identically.
+
+The confidence (`Confidence`) is the probability that the published disparity is within
+3 px of the truth, from what the pipeline knows of the pixel: the calibrated CNN confidence,
+whether it is a GCP and its CNN disparity agrees with the final one, the SGM cost margin
+1 - S(winner) / S(rival) and the left-right agreement. A logistic score of these, mapped
+through an isotonic fit, both fitted on the validation frames (`tools/fit_confidence.py`);
+the fit is stored beside the CNN weights (`<weights>.confidence.json`), one per method.
+"""
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+CONFIDENCE_PX = 3  # the confidence is P(|d - truth| <= CONFIDENCE_PX)
+SPECKLE_SCALE = 16  # fixed-point steps per pixel of filterSpeckles' int16 disparity (OpenCV's)
+FEATURES = ('cnn_confidence', 'gcp', 'cnn_agrees', 'margin', 'sqrt_margin', 'lr_agrees',
+            'lr_agrees_around', 'margin_around', 'log_range_around', 'log_above_min',
+            'log_disparity', 'lr_agrees_wide', 'margin_wide')
+WIDE = 25  # px, the square of the wider neighbourhood features
+AROUND = 9  # px, the square of the neighbourhood features
+
+
+def valid_window(cfg, shape):
+    """
+    Return the region (x0, y0, x1, y1) where the matching window stays inside the image.
+
+    In full-size pixels when matched at 1 / cfg.downsample; empty for images too small.
+    """
+    border = cfg.window // 2 * cfg.downsample
+    h, w = shape
+    x0, y0 = min(border, w), min(border, h)
+    return x0, y0, max(w - border, x0), max(h - border, y0)
+
+
+def cut_short(disp, cfg):
+    """
+    Return where the search was cut short (see the module's docstring), bool (H, W).
+
+    `disp` in full-size pixels; the test runs in matching pixels (1 / cfg.downsample).
+    """
+    x0, y0, x1, y1 = valid_window(cfg, disp.shape)
+    out = np.ones(disp.shape, bool)
+    out[y0:y1, x0:x1] = False
+    f = cfg.downsample
+    x = np.arange(disp.shape[1]) // f
+    with np.errstate(invalid='ignore'):
+        out |= (x < cfg.matched_disp - 1) & (x - disp / np.float32(f) <= 1)
+    return out
+
+
+def margin(s_best, s_second):
+    """
+    Return the SGM cost margin 1 - S(winner) / S(rival), float32 in [0, 1].
+
+    From `sgm.winners`' s_best and s_second; 1 where there is no rival or both are 0.
+    OpenCV's uniqueness test with ratio u, s_second * (100 - u) >= s_best * 100, is
+    margin >= u / 100.
+    """
+    with np.errstate(divide='ignore', invalid='ignore'):
+        m = 1.0 - s_best.astype(np.float64) / s_second
+    return np.where(np.isfinite(m), np.clip(m, 0.0, 1.0), 1.0).astype(np.float32)
+
+
+def depth_limits(cfg, camera):
+    """
+    Return (lowest, highest) disparity of depths within [min_depth, max_depth], or None.
+
+    `camera`: (f * T in px m, cx_left - cx_right in px) with Z = f T / (d - offset); None
+    (no calibration) applies no limit.
+    """
+    if camera is None or not (cfg.min_depth or cfg.max_depth):
+        return None
+    ft, offset = camera
+    high = ft / cfg.min_depth + offset if cfg.min_depth else np.inf
+    low = ft / cfg.max_depth + offset if cfg.max_depth else -np.inf
+    return low, high
+
+
+def features(disp, consistent, m, cof_c, cof_d, gcp):
+    """
+    Return the confidence's features of each pixel, float32 (H, W, len(FEATURES)).
+
+    `m`: the `margin`; `cof_c`, `cof_d`, `gcp` None without GCPs.
+    """
+    none = np.zeros(disp.shape, np.float32)
+    agrees = none if cof_d is None else np.abs(cof_d - disp) <= 1
+    consistent = consistent.astype(np.float32)
+    kernel = np.ones((AROUND, AROUND), np.uint8)
+    low = cv2.erode(disp, kernel, borderType=cv2.BORDER_REPLICATE)
+    high = cv2.dilate(disp, kernel, borderType=cv2.BORDER_REPLICATE)
+    box = (AROUND, AROUND)
+    return np.stack([none if cof_c is None else cof_c, none if gcp is None else gcp, agrees, m,
+                     np.sqrt(m), consistent, cv2.blur(consistent, box), cv2.blur(m, box),
+                     np.log1p(np.maximum(high - low, 0)), np.log1p(np.maximum(disp - low, 0)),
+                     np.log1p(np.maximum(disp, 0)),
+                     cv2.blur(consistent, (WIDE, WIDE)), cv2.blur(m, (WIDE, WIDE))],
+                    axis=-1).astype(np.float32)
+
+
+def method_key(cfg):
+    """Return the name of cfg's method as the confidence file keys it ('census+gcp', ...)."""
+    return cfg.cost + ('+gcp' if cfg.use_gcp else '')
+
+
+def confidence_path(weights):
+    """Return the confidence file beside `weights` ('' = the shipped weights)."""
+    from .cnn import DEFAULT_WEIGHTS
+    return Path(weights or DEFAULT_WEIGHTS).with_suffix('.confidence.json')
+
+
+class Confidence:
+    """A fitted confidence: logistic weights of FEATURES, then isotonic knots (score, P)."""
+
+    def __init__(self, coef, knots):
+        self.coef = np.asarray(coef, np.float64)
+        self.knots = tuple(np.asarray(k, np.float64) for k in knots)
+        if self.coef.shape != (len(FEATURES) + 1,) or len(self.knots[0]) < 2:
+            raise ValueError(f'a confidence needs {len(FEATURES) + 1} weights and 2+ knots')
+
+    @classmethod
+    def load(cls, cfg):
+        """Return the fit of cfg's method beside cfg's weights, or None if there is none."""
+        path = confidence_path(cfg.weights)
+        if not path.is_file():
+            return None
+        try:
+            entry = json.loads(path.read_text()).get(method_key(cfg))
+            if entry is None:
+                return None
+            if entry['features'] != list(FEATURES):
+                raise ValueError(f'fitted on features {entry["features"]}, this version has '
+                                 f'{list(FEATURES)}: fit it again (tools/fit_confidence.py)')
+            return cls(entry['coef'], entry['knots'])
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise ValueError(f'cannot read the confidence fit {path}: {err}') from None
+
+    def score(self, feats):
+        return feats @ self.coef[1:].astype(np.float32) + np.float32(self.coef[0])
+
+    def __call__(self, feats):
+        """Return the probability that each pixel is within 3 px, float32 (H, W)."""
+        return np.interp(self.score(feats), *self.knots).astype(np.float32)
+
+
+def speckles(disp, size, max_diff):
+    """Return a mask of the pixels of `disp` that lie in speckles, as the module says."""
+    invalid = -SPECKLE_SCALE
+    fixed = np.where(np.isfinite(disp), np.rint(disp * SPECKLE_SCALE), invalid)
+    fixed = np.clip(fixed, invalid, np.iinfo(np.int16).max).astype(np.int16)
+    filtered, _ = cv2.filterSpeckles(fixed, invalid, int(size), int(max_diff * SPECKLE_SCALE))
+    return (filtered == invalid) & np.isfinite(disp)
+
+
+def invalidate(disp, consistent, m, cfg, camera=None, confidence=None):
+    """
+    Set NaN in `disp` (float32, in place) where cfg's tests fail; return `disp`.
+
+    `m`: the `margin`; `confidence`: the calibrated confidence (float32 (H, W)) for
+    `min_confidence`, None if there is none (then it is not applied).
+    """
+    if cfg.valid_window:
+        disp[cut_short(disp, cfg)] = np.nan
+    if cfg.lr_check:
+        disp[~consistent] = np.nan
+    if cfg.uniqueness_ratio:
+        disp[m < np.float32(cfg.uniqueness_ratio / 100)] = np.nan
+    limits = depth_limits(cfg, camera)
+    if limits is not None:
+        with np.errstate(invalid='ignore'):
+            disp[(disp < limits[0]) | (disp > limits[1])] = np.nan
+    if cfg.min_confidence and confidence is not None:
+        disp[confidence < cfg.min_confidence] = np.nan
+    if cfg.speckle_size:
+        disp[speckles(disp, cfg.speckle_size, cfg.speckle_range)] = np.nan
+    return disp

@@ -1,0 +1,120 @@
+r"""
+python -m gcp_stereo_ros.tools.fit_confidence: fit the confidence of the final disparity.
+
+The confidence (stereo.postprocess.Confidence) is P(|d - truth| <= 3 px) of each pixel
+that the search did not cut short. Fitted on the validation frames only (each frame weighted
+equally): a logistic regression of postprocess.FEATURES, then an isotonic map of its score
+(`train.fit_calibration`, as the CNN's confidence is calibrated). The pixels are those of
+each method's default pipeline that `valid_window` keeps (the features are those of the
+WTA disparity before any test), so the fit holds whatever other test is on. Writes one
+entry per method into the file beside the weights (postprocess.confidence_path), keeping
+the other methods' entries.
+
+The shipped fit (README "What is published"):
+    python -m gcp_stereo_ros.tools.fit_confidence --dataset ../shared/data \
+        --split config/cnn_split.yaml --methods census+gcp
+"""
+import argparse
+import json
+import sys
+
+import numpy as np
+from tqdm import tqdm
+import yaml
+
+from .cli import console_main
+from .evaluate import Runner, select_frames
+from ..evaluation.datasets import load_frame
+from ..stereo.pipeline import UNFILTERED
+from ..stereo.postprocess import (Confidence, confidence_path, CONFIDENCE_PX, cut_short,
+                                  FEATURES, features)
+
+RIDGE = 1e-6  # keeps the logistic fit defined when a feature is constant on the samples
+ITERATIONS = 25
+
+
+def logistic(x, y, w):
+    """Return the weights (intercept first) of a weighted logistic regression (IRLS)."""
+    x = np.column_stack([np.ones(len(x)), x]).astype(np.float64)
+    coef = np.zeros(x.shape[1])
+    for _ in range(ITERATIONS):
+        p = 1.0 / (1.0 + np.exp(-np.clip(x @ coef, -30, 30)))
+        s = w * p * (1 - p)
+        step = np.linalg.solve((x * s[:, None]).T @ x + RIDGE * np.eye(len(coef)),
+                               x.T @ (w * (y - p)) - RIDGE * coef)
+        coef += step
+        if np.abs(step).max() < 1e-8:
+            break
+    return coef
+
+
+def fit(feats, correct, weight):
+    """Return the Confidence fitted on samples (features, bool correct, weight)."""
+    from .train import fit_calibration  # torch is loaded with it
+    coef = logistic(feats, correct.astype(np.float64), weight)
+    model = Confidence(coef, ([0.0, 1.0], [0.0, 1.0]))
+    knots = fit_calibration(model.score(feats).astype(np.float64), correct, weight)
+    return Confidence(coef, knots)
+
+
+def samples(result, config, gt, valid):
+    """
+    Return (features, correct) of the pixels with ground truth that `valid_window` keeps.
+
+    `result`: of `config` with every invalidation off.
+    """
+    disp = result.disparity
+    sel = ~cut_short(disp, config) & np.isfinite(gt)
+    if valid is not None:
+        sel &= valid
+    feats = features(disp, result.consistent, result.margin, result.cof_c, result.cof_d,
+                     result.gcp)
+    return feats[sel], np.abs(disp[sel] - gt[sel]) <= CONFIDENCE_PX
+
+
+def split_frames(path):
+    """Return the validation frame names of a split file (config/cnn_split.yaml)."""
+    doc = yaml.safe_load(open(path))
+    if not isinstance(doc, dict) or not doc.get('validation'):
+        raise ValueError(f'{path}: no validation frames')
+    return list(doc['validation'])
+
+
+@console_main('fit_confidence')
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='python -m gcp_stereo_ros.tools.fit_confidence',
+                                 description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--dataset', action='append', required=True)
+    which = ap.add_mutually_exclusive_group(required=True)
+    which.add_argument('--frames', nargs='+', help='validation frame names or patterns')
+    which.add_argument('--split', help="a split file: its 'validation' frames")
+    ap.add_argument('--methods', nargs='+', default=['census+gcp'],
+                    choices=('census', 'sad', 'census+gcp', 'sad+gcp'))
+    ap.add_argument('--weights', default='', help="CNN weights ('' = the shipped ones)")
+    args = ap.parse_args(argv)
+
+    frames = select_frames(args.dataset, split_frames(args.split) if args.split else args.frames)
+    runner = Runner(overrides={'weights': args.weights, **UNFILTERED})
+    path = confidence_path(args.weights)
+    fits = json.loads(path.read_text()) if path.is_file() else {}
+    for method in args.methods:
+        parts = []
+        for source, name in tqdm(frames, desc=method, unit='frame', leave=False):
+            frame = load_frame(source, name)
+            _, result, _ = runner.run(method, frame.left, frame.right, frame.max_disp)
+            feats, correct = samples(result, runner.config(method, frame.max_disp), frame.gt,
+                                     frame.valid)
+            parts.append((feats, correct, np.full(len(correct), 1.0 / len(correct))))
+        model = fit(*(np.concatenate(a) for a in zip(*parts)))
+        fits[method] = {'features': list(FEATURES), 'coef': model.coef.tolist(),
+                        'knots': [k.tolist() for k in model.knots],
+                        'frames': [name for _, name in frames]}
+        print(f'{method}: {len(frames)} frames, confidence from {model.knots[1][0]:.3f} '
+              f'to {model.knots[1][-1]:.3f}')
+    path.write_text(json.dumps(fits, indent=1) + '\n')
+    print(f'wrote {path}')
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,140 @@
+"""
+What is published and how sure it is (stereo.postprocess), on real data and hand-made cases.
+
+The KITTI figures are the README's ("What is published"); the thresholds leave room for
+float rounding and bf16 differences, and any real regression crosses them.
+"""
+import cv2
+from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.evaluation.metrics import error_rates
+from gcp_stereo_ros.stereo.pipeline import StereoConfig, StereoPipeline, UNFILTERED
+from gcp_stereo_ros.stereo.postprocess import (cut_short, invalidate, margin, speckles,
+                                               valid_window)
+from gcp_stereo_ros.stereo.sgm import winners
+import numpy as np
+import pytest
+
+
+@pytest.mark.parametrize('dtype', [np.uint16, np.float32])
+def test_winners_give_the_best_rival_outside_the_winners_neighbours(dtype):
+    rng = np.random.default_rng(3)
+    total = rng.integers(0, 5000, (7, 40, 16)).astype(dtype)
+    total[0, 0] = 9  # every cost alike: the first wins, the rival costs the same
+    disp, consistent, s_best, s_second = winners(total, lr_check=True)
+    best = np.argmin(total, axis=2)
+    np.testing.assert_array_equal(disp, best)
+    d = np.arange(16)
+    far = np.abs(d[None, None] - best[..., None]) > 1
+    np.testing.assert_array_equal(s_best, np.take_along_axis(total, best[..., None], 2)[..., 0])
+    np.testing.assert_array_equal(s_second, np.where(far, total, np.inf).min(axis=2))
+    assert not consistent.all() and consistent.any()
+    one = winners(total[:, :, :2])[3]  # two disparities: no rival more than 1 px away
+    assert np.isinf(one).all()
+
+
+def test_uniqueness_is_opencvs_test():
+    rng = np.random.default_rng(0)
+    s_best = rng.integers(1, 1000, 10000).astype(np.float32)
+    s_second = s_best + rng.integers(0, 200, 10000).astype(np.float32)
+    m = margin(s_best, s_second)
+    for ratio in (1, 5, 15):  # OpenCV: invalid where s_second * (100 - u) < s_best * 100
+        opencv = s_second.astype(np.float64) * (100 - ratio) >= s_best.astype(np.float64) * 100
+        exact = s_second * (100 - ratio) != s_best * 100  # float32 may round a tie either way
+        np.testing.assert_array_equal((m >= np.float32(ratio / 100))[exact], opencv[exact])
+    assert margin(np.float32([0, 5]), np.float32([0, np.inf])).tolist() == [1.0, 1.0]
+
+
+def test_speckles_as_stereo_image_proc():
+    disp = np.full((40, 60), 10.0, np.float32)
+    disp[5:12, 5:12] = 30.0  # 49 pixels off by 20 px from their neighbours
+    disp[20:30, 20:30] = 13.0  # 100 pixels 3 px off: within speckle_range 4, one region
+    disp[0, 59] = np.nan
+    np.testing.assert_array_equal(speckles(disp, 49, 4), disp == 30)
+    assert not speckles(disp, 48, 4).any()
+    assert (speckles(disp, 100, 2) == ((disp == 30) | (disp == 13))).all()
+
+
+def test_cut_short_band_and_border():
+    cfg = StereoConfig(max_disp=16, window=5)
+    disp = np.full((10, 30), 3.0, np.float32)
+    disp[5, 6] = 5.5  # x - d = 0.5: at the end of the 7 candidates at x = 6
+    disp[5, 7] = 5.0  # x - d = 2: inside its range
+    disp[5, 20] = 19.5  # x = 20 >= max_disp - 1: every candidate searched
+    cut = cut_short(disp, cfg)
+    assert cut[:2].all() and cut[-2:].all() and cut[:, :2].all() and cut[:, -2:].all()
+    inner = cut[2:-2, 2:-2]  # 6 rows; x = 2, 3, 4 have x - 3 <= 1
+    assert inner.sum() == 3 * 6 + 1 and cut[5, 6] and not cut[5, 7] and not cut[5, 20]
+    assert valid_window(cfg, (10, 30)) == (2, 2, 28, 8)
+    cfg2 = cfg.replace(downsample=2)
+    assert valid_window(cfg2, (10, 30)) == (4, 4, 26, 6)
+    assert valid_window(cfg, (3, 3)) == (2, 2, 2, 2)  # too small: empty
+
+
+def test_depth_limits_with_a_camera():
+    cfg = StereoConfig(max_disp=64, min_depth=1.0, max_depth=10.0, speckle_size=0,
+                       valid_window=False, uniqueness_ratio=0.0)
+    disp = np.float32([[2.0, 7.0, 30.0, 60.0]])  # f T = 50 m px, offset 1 px: Z = 50 / (d - 1)
+    out = invalidate(disp.copy(), np.ones(disp.shape, bool), np.ones(disp.shape, np.float32),
+                     cfg, camera=(50.0, 1.0))
+    np.testing.assert_array_equal(np.isnan(out), [[True, False, False, True]])
+    same = invalidate(disp.copy(), np.ones(disp.shape, bool), np.ones(disp.shape, np.float32),
+                      cfg)  # no camera: no limit
+    assert np.isfinite(same).all()
+    with pytest.raises(ValueError, match='max_depth'):
+        cfg.replace(max_depth=0.5)
+    with pytest.raises(ValueError, match='uniqueness_ratio'):
+        cfg.replace(uniqueness_ratio=100.0)
+    with pytest.raises(ValueError, match='min_confidence'):
+        cfg.replace(min_confidence=1.5)
+    with pytest.raises(ValueError, match='speckle_size'):
+        cfg.replace(speckle_size=-1)
+
+
+@pytest.fixture(scope='module')
+def kitti(data_dir):
+    """Run the defaults and the unfiltered pipeline on two frames (validation, unseen)."""
+    out = {}
+    pipe = StereoPipeline(StereoConfig())
+    for name in ('kitti2015/000031_10', 'kitti2012/000070_10'):
+        frame = load_frame(data_dir, name)
+        result = pipe(frame.left, frame.right)
+        raw = pipe.with_config(pipe.config.replace(**UNFILTERED, subpixel=False))(
+            frame.left, frame.right, confidence=(result.cof_c, result.cof_d, result.cof_dr))
+        out[name] = frame, result, raw
+    return out
+
+
+@pytest.mark.parametrize('name, density, bad3, near', [
+    # measured (README): 000031 84.9 % / 1.49 % / 0.56 %, 000070 88.0 % / 1.03 % / 0.14 %
+    ('kitti2015/000031_10', 80.0, 2.5, 0.8), ('kitti2012/000070_10', 84.0, 1.5, 0.45)])
+def test_defaults_publish_what_the_match_supports(kitti, name, density, bad3, near):
+    frame, result, raw = kitti[name]
+    r, before = (error_rates(x.disparity, frame.gt, frame.valid) for x in (result, raw))
+    assert r['density'] > density and r['bad3_published'] < bad3 and r['near3_published'] < near
+    assert before['density'] == 100 and before['bad3_published'] > 4.0  # unfiltered: 4.6-5.0
+    assert before['near3_published'] > 2 * r['near3_published']
+
+
+def test_confidence_is_calibrated_on_an_unseen_frame(kitti):
+    """Check that in each confidence bin the share within 3 px is close to the predicted."""
+    frame, _, raw = kitti['kitti2012/000070_10']
+    sel = np.isfinite(frame.gt) & frame.valid & np.isfinite(raw.disparity)
+    sure = raw.confidence[sel]
+    right = np.abs(raw.disparity[sel] - frame.gt[sel]) <= 3
+    for lo, hi in ((0.6, 0.8), (0.8, 0.9), (0.9, 0.97), (0.97, 1.01)):
+        b = (sure >= lo) & (sure < hi)
+        assert b.sum() > 500
+        assert abs(right[b].mean() - sure[b].mean()) < 0.1, (lo, hi)
+
+
+def test_published_confidence_and_paper_preset(kitti):
+    frame, result, _ = kitti['kitti2015/000031_10']
+    published = np.isfinite(result.disparity)
+    assert (result.confidence[~published] == 0).all()
+    assert (result.confidence[published] >= 0.88).all()
+    paper = StereoConfig.for_cost('census', 'paper')
+    assert not (paper.valid_window or paper.lr_check or paper.uniqueness_ratio
+                or paper.speckle_size or paper.min_depth or paper.min_confidence)
+    pipe = StereoPipeline(paper)
+    left = cv2.resize(frame.left, (400, 120))
+    assert np.isfinite(pipe(left, cv2.resize(frame.right, (400, 120))).disparity).all()
