@@ -90,6 +90,30 @@ def _key(typingctx, v):
     return v(v), lambda context, builder, sig, args: args[0]
 
 
+@intrinsic
+def _key_value(typingctx, k):
+    """Return the value of a key (see `_key`) as float32: a float32's int32 bits, else k."""
+    def bits(context, builder, sig, args):
+        return builder.bitcast(args[0], ir.FloatType())
+
+    def count(context, builder, sig, args):
+        return builder.uitofp(args[0], ir.FloatType())
+
+    return types.float32(k), bits if k == types.int32 else count
+
+
+def _top_key(total):
+    """Return a key (see `_keys`) no value of the array `total` exceeds: inf's or 65535."""
+    raise NotImplementedError('for numba-compiled code only')
+
+
+@overload(_top_key, inline='always')
+def _top_key_impl(total):
+    if total.dtype == types.float32:
+        return lambda total: np.int32(0x7F800000)  # the bits of +inf
+    return lambda total: np.uint16(UINT16_MAX)  # uint16 volumes, the only other type
+
+
 def _as(like, x):
     """Return x converted to the element type of the array `like`."""
     raise NotImplementedError('for numba-compiled code only')
@@ -325,37 +349,49 @@ def parabola_offset(lo, mid, hi):
     return (lo - hi) / (2.0 * curv) if curv > 0 else 0.0
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(parallel=True, cache=True, nogil=True, fastmath=True)
 def _wta(total, subpixel, lr_tol, out, consistent, s_best, s_second, cancel):
     h, w, nd = total.shape
     for y in prange(h):
         if cancel[0]:
             continue
+        # Right view (lr_tol >= 0): the first argmin_d S(y, xr + d, d) of each right pixel xr,
+        # as running minima over the left pixels x = xr + d (d grows with x), kept at
+        # w - 1 - xr: for one x the right pixels x - d, d = 0, 1, ..., are then a forward
+        # run, which vectorizes.
+        right_min = np.empty(w if lr_tol >= 0 else 0, total.dtype)
+        right_arg = np.zeros(w if lr_tol >= 0 else 0, np.int32)
+        for x in range(w if lr_tol >= 0 else 0):
+            j = w - 1 - x  # d = 0: the first cell of right pixel x
+            right_min[j] = total[y, x, 0]
+            right_arg[j] = 0
+            for d in range(1, min(nd, x + 1)):
+                v = total[y, x, d]
+                better = v < right_min[j + d]
+                right_arg[j + d] = np.int32(d) if better else right_arg[j + d]
+                right_min[j + d] = v if better else right_min[j + d]
         for x in range(w):
-            s = total[y, x]
-            m = _min_key(s)  # S >= 0: the first d whose key equals the minimum's
-            keys = _keys(s)
+            m = _key(total[y, x, 0])  # S >= 0: the first d whose key equals the minimum's
+            for d in range(1, nd):
+                m = min(m, _key(total[y, x, d]))
             best = 0
-            while keys[best] != m:
+            while _key(total[y, x, best]) != m:
                 best += 1
-            rival = np.inf  # min S(d) over |d - best| > 1: the best match not beside the winner
-            for d in range(nd):
-                if abs(d - best) > 1 and s[d] < rival:
-                    rival = s[d]
-            s_best[y, x] = s[best]
-            s_second[y, x] = rival
+            # min S(d) over |d - best| > 1 (the best match not beside the winner): two runs
+            rival = _top_key(total)
+            for d in range(best - 1):
+                rival = min(rival, _key(total[y, x, d]))
+            for d in range(best + 2, nd):
+                rival = min(rival, _key(total[y, x, d]))
+            s_best[y, x] = total[y, x, best]
+            s_second[y, x] = _key_value(rival) if best >= 2 or best + 2 < nd else np.inf
             offset = 0.0
             if subpixel and 0 < best < nd - 1:
-                offset = parabola_offset(s[best - 1], s[best], s[best + 1])
-            if lr_tol >= 0:
-                # Right-view WTA at xr = x - best: argmin_d S(xr + d, d) over cells inside the
-                # image.
+                offset = parabola_offset(total[y, x, best - 1], total[y, x, best],
+                                         total[y, x, best + 1])
+            if lr_tol >= 0:  # the right view's winner at xr = x - best, if inside the image
                 xr = x - best
-                rbest = 0
-                for d in range(1, min(nd, w - xr)):
-                    if total[y, xr + d, d] < total[y, xr + rbest, rbest]:
-                        rbest = d
-                consistent[y, x] = abs(rbest - best) <= lr_tol
+                consistent[y, x] = xr >= 0 and abs(right_arg[w - 1 - xr] - best) <= lr_tol
             out[y, x] = best + offset
 
 
@@ -366,8 +402,8 @@ def winners(total, subpixel=False, lr_check=False, cancel=None):
     S is uint16, or finite and >= 0 as `aggregate` returns them (ValueError otherwise); the
     first minimum wins on ties. float32 (H, W) disparity (with `subpixel`, a parabola fit
     through the minimum and its neighbours); bool (H, W) `consistent`, False where the
-    right-view winner at x - d differs from d by more than 1 px (all True without
-    `lr_check`); float32 (H, W) `s_best` = S(d) of the winner and `s_second` = the least
+    right-view winner at x - d differs from d by more than 1 px or x - d < 0 (all True
+    without `lr_check`); float32 (H, W) `s_best` = S(d) of the winner and `s_second` = the least
     S(d) over |d - winner| > 1 (inf where no such d exists), which the uniqueness test and
     the confidence use. `sgm_cuda.winners` is the GPU twin. `cancel`: a CancelFlag; once
     set, the remaining rows are skipped.

@@ -261,14 +261,7 @@ def _winners(total, rbest, subpixel, lr_tol, out, consistent, s_best, s_second):
     out[y, x] = best + offset
     if lr_tol >= 0:  # the right view's winner at xr = x - best
         xr = x - best
-        rb = 0
-        if xr >= 0:
-            rb = rbest[y, xr]
-        else:  # outside the right image: the CPU's scan, its indices wrapping as there
-            for d in range(1, min(nd, w - xr)):
-                if total[y, xr + d, d] < total[y, xr + rb, rb]:
-                    rb = d
-        consistent[y, x] = abs(rb - best) <= lr_tol
+        consistent[y, x] = xr >= 0 and abs(rbest[y, max(xr, 0)] - best) <= lr_tol
 
 
 def winners(total, subpixel=False, lr_check=False):
