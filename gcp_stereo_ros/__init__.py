@@ -18,7 +18,8 @@ import os
 # user already set wins.
 os.environ.setdefault('OMP_WAIT_POLICY', 'PASSIVE')
 
-from .stereo.pipeline import StereoConfig, StereoPipeline  # noqa: E402  (after the policy)
+from .stereo.config import StereoConfig  # noqa: E402  (after the policy)
+from .stereo.pipeline import StereoPipeline  # noqa: E402
 
 __version__ = '0.1.0'
 __all__ = ['StereoConfig', 'StereoPipeline', '__version__']

@@ -15,8 +15,9 @@ import threading
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.stereo import cost, cost_cuda, gcp, gcp_cuda, gpu, sgm, sgm_cuda
 from gcp_stereo_ros.stereo.cnn import confidence, load_net
+from gcp_stereo_ros.stereo.config import StereoConfig
 from gcp_stereo_ros.stereo.images import gray_pair, standardize
-from gcp_stereo_ros.stereo.pipeline import StereoConfig, StereoPipeline
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest
 import torch

@@ -11,7 +11,8 @@ import subprocess
 import sys
 
 from gcp_stereo_ros.stereo import gpu
-from gcp_stereo_ros.stereo.pipeline import StereoConfig, StereoPipeline
+from gcp_stereo_ros.stereo.config import StereoConfig
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from numba import cuda, typeof
 import numpy as np
 import pytest

@@ -2,7 +2,7 @@
 from pathlib import Path
 
 from gcp_stereo_ros.ros.params import config_from_params, load_params_file
-from gcp_stereo_ros.stereo.pipeline import StereoConfig
+from gcp_stereo_ros.stereo.config import StereoConfig
 import pytest
 import yaml
 

@@ -10,11 +10,11 @@ from gcp_stereo_ros.evaluation.datasets import load_frame
 
 from gcp_stereo_ros.evaluation.metrics import error_rates
 from gcp_stereo_ros.stereo.cancel import CancelFlag, Cancelled
+from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
 from gcp_stereo_ros.stereo.gcp import refine, select
 from gcp_stereo_ros.stereo.images import bin_area, upsample
-from gcp_stereo_ros.stereo.pipeline import (fixed_point_scale, memory_bytes, MIB,
-                                            mmap_large_arrays, StereoConfig, StereoPipeline,
-                                            UNFILTERED)
+from gcp_stereo_ros.stereo.memory import fixed_point_scale, memory_bytes, MIB, mmap_large_arrays
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from gcp_stereo_ros.tools.evaluate import opencv_sgbm
 from gcp_stereo_ros.tools.load import reset_peak_rss, rss_mb
 import numpy as np
@@ -127,7 +127,7 @@ def test_fixed_point_pipeline_matches_float32(motorcycle, monkeypatch):
     conf = fixed.cof_c, fixed.cof_d, fixed.cof_dr
     fixed_tuned = tuned(left, right, conf)
     assert paper._workspace['total'].dtype == np.uint16
-    monkeypatch.setattr('gcp_stereo_ros.stereo.pipeline.fixed_point_scale', lambda cfg: None)
+    monkeypatch.setattr('gcp_stereo_ros.stereo.memory.fixed_point_scale', lambda cfg: None)
     assert (paper(left, right, conf).disparity != fixed.disparity).mean() < 1e-3
     assert paper._workspace['total'].dtype == np.float32
     np.testing.assert_array_equal(tuned(left, right, conf).disparity, fixed_tuned.disparity)

@@ -7,7 +7,8 @@ float rounding and bf16 differences, and any real regression crosses them.
 import cv2
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
-from gcp_stereo_ros.stereo.pipeline import StereoConfig, StereoPipeline, UNFILTERED
+from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from gcp_stereo_ros.stereo.postprocess import (cut_short, invalidate, margin, speckles,
                                                valid_window)
 from gcp_stereo_ros.stereo.sgm import winners

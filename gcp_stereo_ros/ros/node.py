@@ -52,7 +52,7 @@ from .rosimage import message_to_array
 from .stereo_input import StereoInput
 from .worker import NewestWorker
 from ..stereo.cancel import CancelFlag, Cancelled
-from ..stereo.pipeline import mmap_large_arrays
+from ..stereo.memory import mmap_large_arrays
 
 LOG_PERIOD = 5.0  # seconds between two logs of the same text
 STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop

@@ -17,8 +17,9 @@ import numpy as np
 import yaml
 
 from .sync import PairSync
+from ..stereo.config import COST_DEFAULTS, StereoConfig
 from ..stereo.cost import COSTS
-from ..stereo.pipeline import COST_DEFAULTS, MIB, StereoConfig
+from ..stereo.memory import MIB
 
 NODE_NAME = 'gcp_stereo_node'
 # Parameters every rclpy node declares (a dump holds them); the bag tools leave them out.

@@ -66,7 +66,8 @@ from ..ros.params import config_from_params, config_warnings, load_params_file, 
 from ..ros.rosimage import array_to_compressed_fields, image_to_array, message_to_array
 from ..ros.sync import CameraInfos, SIDES
 from ..stereo.images import mask_image
-from ..stereo.pipeline import mmap_large_arrays, StereoPipeline
+from ..stereo.memory import mmap_large_arrays
+from ..stereo.pipeline import StereoPipeline
 
 PROG = 'gcp-stereo-bag'
 IMAGE, INFO, STRING = 'sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'std_msgs/msg/String'

@@ -29,9 +29,11 @@ from .evaluate import opencv_sgbm
 from ..evaluation.datasets import list_frames, load_frame
 from ..stereo import gpu
 from ..stereo.cnn import bf16_native
+from ..stereo.config import StereoConfig
 from ..stereo.cost import cost_volume
 from ..stereo.images import gray_pair
-from ..stereo.pipeline import mmap_large_arrays, StereoConfig, StereoPipeline
+from ..stereo.memory import mmap_large_arrays
+from ..stereo.pipeline import StereoPipeline
 from ..stereo.sgm import aggregate
 
 KITTI_SIZE = (1242, 375)

@@ -24,8 +24,9 @@ from .cli import console_main, positive_int
 from ..evaluation.datasets import list_frames, load_frame
 from ..evaluation.metrics import error_rates
 from ..evaluation.viz import colorize, save_png
+from ..stereo.config import PRESETS, StereoConfig
 from ..stereo.images import gray_pair
-from ..stereo.pipeline import PRESETS, StereoConfig, StereoPipeline
+from ..stereo.pipeline import StereoPipeline
 
 METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
 FIELDS = sorted(StereoConfig.__dataclass_fields__)  # the parameters --set may override

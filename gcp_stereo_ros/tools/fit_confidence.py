@@ -25,7 +25,7 @@ import yaml
 from .cli import console_main
 from .evaluate import Runner, select_frames
 from ..evaluation.datasets import load_frame
-from ..stereo.pipeline import UNFILTERED
+from ..stereo.config import UNFILTERED
 from ..stereo.postprocess import (Confidence, confidence_path, CONFIDENCE_PX, cut_short,
                                   FEATURES, features)
 

@@ -39,7 +39,8 @@ from ..ros.graph import peer_graph
 from ..ros.messages import stamp_ns
 from ..ros.params import config_from_params
 from ..ros.rosimage import array_to_image_fields
-from ..stereo.pipeline import memory_bytes, MIB, mmap_large_arrays, StereoPipeline
+from ..stereo.memory import memory_bytes, MIB, mmap_large_arrays
+from ..stereo.pipeline import StereoPipeline
 
 IDLE_SECONDS = 3.0
 ANSWER_SECONDS = 600.0

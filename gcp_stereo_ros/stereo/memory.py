@@ -1,0 +1,145 @@
+"""
+The pipeline's memory: its volumes' number type, a bound of a pair's need, the allocator.
+
+`memory_bytes` bounds what a pair needs (checked against memory_limit_mb before anything is
+allocated); `mmap_large_arrays` sets glibc's allocator as long-running processes use it.
+"""
+import ctypes
+
+import numpy as np
+
+from . import cost as cost_mod
+from .config import DOWNSAMPLE
+from .sgm import directions, path_sum_bound
+
+MIB = 1 << 20
+
+
+def fixed_point_scale(cfg):
+    """
+    Return the smallest integer s that allows fixed-point uint16 volumes, or None.
+
+    s makes s * (Census costs, P1, P2, and C_hi, C_low with GCPs) integers whose path sums,
+    at most paths * s * (max cost + P2), fit in uint16 (s = 10 for the paper's C_low = 1.3);
+    None for SAD, or values such as C_low = 1.2345, which would need s = 2000. With an s
+    the pipeline keeps its volumes in uint16: half the memory, faster SGM, exact integer
+    arithmetic; the disparities equal the float32 path's except where float32 rounding of a
+    fractional value breaks a tie.
+    """
+    if cfg.cost != 'census':
+        return None
+    values = (cfg.p1, cfg.p2) + ((cfg.c_hi, cfg.c_low) if cfg.use_gcp else ())
+    top = max(cost_mod.max_cost(cfg.cost, cfg.window), cfg.c_hi if cfg.use_gcp else 0)
+    for s in range(1, int(cost_mod.UINT16_MAX // path_sum_bound(cfg.paths, top, cfg.p2)) + 1):
+        if all(abs(v * s - round(v * s)) <= 1e-9 * max(1.0, v * s) for v in values):
+            return s
+    return None
+
+
+def volume_arithmetic(cfg):
+    """
+    Return (scale, dtype, fixed) of the pipeline's volumes for `cfg`.
+
+    `fixed_point_scale` (None for float32), the volume type (uint16 with a scale, else
+    float32), and the map of a cost-unit parameter (P1, P2, C_hi, C_low) into the volume's.
+    """
+    scale = fixed_point_scale(cfg)
+    if scale is None:
+        return None, np.dtype(np.float32), lambda v: v
+    return scale, np.dtype(np.uint16), lambda v: round(v * scale)
+
+
+# Bytes per matched pixel besides the volumes, alive at once while the cost volume is built
+# (the gray pair 8, the CNN outputs 12, the Census bit strings 48), rounded up; it covers
+# the later stages too.
+PIXEL_BYTES = 80
+# While the CNN runs: the gray pair, its network input and the CNN outputs (8 + 8 + 12 bytes
+# per pixel), and of one strip four layer outputs' worth (a convolution's, its ReLU's, the
+# descriptors copied out, and oneDNN's scratchpad, which it keeps for the largest so far).
+CNN_PIXEL_BYTES = 28
+STRIP_LAYERS = 4
+# With downsample > 1, per full-size pixel: the gray pair (8), the outputs blown up (17),
+# rounded up.
+FULL_PIXEL_BYTES = 32
+
+
+def memory_bytes(cfg, height, width):
+    """
+    Return an upper bound of the memory the pipeline allocates for a pair of this size.
+
+    At the matching resolution (H/downsample x W/downsample, D = matched_disp): the cost and
+    path-sum volumes (H x W x D each, kept between frames) and the SGM sweep buffers (3 rows
+    of each path from above, W x D each), plus whichever needs more: the CNN's arrays with
+    one strip's activations (two images, 64 float32 maps of STRIP_ROWS + 8 rows), or
+    PIXEL_BYTES per pixel for the later stages; with downsample, FULL_PIXEL_BYTES per
+    full-size pixel. Measured peaks stay below it (README, "Failures, memory and shutdown").
+    """
+    fixed, per_disparity = _memory_terms(cfg, height, width)
+    return fixed + per_disparity * cfg.matched_disp
+
+
+def _memory_terms(cfg, height, width):
+    """Return (bytes, bytes per matched disparity) of `memory_bytes`."""
+    f = cfg.downsample
+    h, w = height // f, width // f
+    itemsize = volume_arithmetic(cfg)[1].itemsize
+    sweep_rows = 3 * sum(dy > 0 for _, dy in directions(cfg.paths))
+    per_disparity = (2 * h + sweep_rows) * w * itemsize
+    fixed = PIXEL_BYTES * h * w
+    if cfg.use_gcp:
+        from .cnn import FEATURES, PAD, STRIP_ROWS
+        strip = 2 * FEATURES * (min(STRIP_ROWS, h) + 2 * PAD) * (w + 2 * PAD) * 4
+        fixed = max(fixed, CNN_PIXEL_BYTES * h * w + STRIP_LAYERS * strip)
+    if f > 1:
+        fixed += FULL_PIXEL_BYTES * height * width
+    return fixed, per_disparity
+
+
+def check_memory(cfg, height, width):
+    """Raise ValueError if a pair of this size needs more than cfg.memory_limit_mb."""
+    fixed, per_disparity = _memory_terms(cfg, height, width)
+    need = fixed + per_disparity * cfg.matched_disp  # memory_bytes, from the same terms
+    if need <= cfg.memory_limit_mb * MIB:
+        return
+    fits = (cfg.memory_limit_mb * MIB - fixed) // per_disparity * cfg.downsample
+    f, nd = cfg.downsample, cfg.matched_disp
+    changes = ([f'lower max_disparity (at most {fits} fits)'] if fits >= 1 else []) + (
+        ['raise downsample'] if f < max(DOWNSAMPLE) else []) + ['raise memory_limit_mb']
+    what = ', '.join(changes[:-1]) + ', or ' + changes[-1] if len(changes) > 1 else changes[0]
+    raise ValueError(
+        f'{width}x{height} at max_disparity {cfg.max_disp}'
+        + (f', downsample {f},' if f > 1 else '')
+        + f' needs about {need / MIB:.0f} MB (two {width // f}x{height // f}x{nd} '
+        f'{volume_arithmetic(cfg)[1]} volumes), over memory_limit_mb {cfg.memory_limit_mb}: '
+        + what)
+
+
+# Blocks from this size on are mmap'd (`mmap_large_arrays`): above every block a KITTI-size
+# frame allocates and frees while it runs (a CNN strip's layer output: 23 MB).
+MMAP_BYTES = 64 * MIB
+
+
+def call_glibc(call, *args):
+    """Call glibc's `call` (mallopt, malloc_trim); no-op without glibc."""
+    try:
+        getattr(ctypes.CDLL(None), call)(*args)
+    except (OSError, AttributeError):
+        pass
+
+
+def mmap_large_arrays():
+    """
+    Make glibc's malloc serve blocks of MMAP_BYTES or more with mmap, in this whole process.
+
+    For long-running processes (the node, the bag tool), with `StereoPipeline.release` at
+    idle. By default glibc raises its mmap threshold up to 32 MiB after a large block is
+    freed and serves blocks below it from heaps that keep freed memory: measured at 741x500,
+    100 MB more after the arrays were let go and steady peaks 30 % higher. A fixed threshold
+    of 1 MiB made RSS follow the arrays alive, but every block of a frame was then fresh
+    pages (a page fault per 4 KiB): a KITTI pair took 1.3 s instead of 0.74 s (CNN 0.74 s
+    instead of 0.35 s; README, "Speed"). With MMAP_BYTES the blocks freed within a pair (a
+    CNN strip's layer outputs, 24 per pair) are reused within it, the volumes are mmap'd, and
+    each pair ends by giving the freed heap memory back (malloc_trim), so RSS between pairs
+    still follows the arrays alive.
+    """
+    call_glibc('mallopt', -3, MMAP_BYTES)  # M_MMAP_THRESHOLD
