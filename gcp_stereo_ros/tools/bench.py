@@ -71,16 +71,23 @@ def median_pipeline(pipeline, left, right, repeat):
 
 
 def volume_stage_seconds(left, right, nd, repeat):
-    """Return the median seconds of OpenCV and of our cost and SGM stages on their own."""
+    """
+    Return the median seconds of OpenCV and of our cost and SGM stages on their own.
+
+    Each writes into an array kept between calls, as the pipeline keeps its volumes (a fresh
+    120 MB array a call would add its page faults to the stage).
+    """
     census = cost_volume(left, right, nd, 'census', dtype=np.uint16)  # as the pipeline runs Census
     census_f32 = census.astype(np.float32)
+    kept = {t: np.empty(census.shape, t) for t in (np.uint16, np.float32)}
     stages = {
         'opencv_sgbm_hh': lambda: opencv_sgbm(left, right, nd),
-        'census': lambda: cost_volume(left, right, nd, 'census', dtype=np.uint16),
-        'sad': lambda: cost_volume(left, right, nd, 'sad'),
-        'sgm8': lambda: aggregate(census, 4, 128, 8),
-        'sgm16': lambda: aggregate(census, 4, 128, 16),
-        'sgm16_float32': lambda: aggregate(census_f32, 4, 128, 16),
+        'census': lambda: cost_volume(left, right, nd, 'census', out=kept[np.uint16],
+                                      dtype=np.uint16),
+        'sad': lambda: cost_volume(left, right, nd, 'sad', out=kept[np.float32]),
+        'sgm8': lambda: aggregate(census, 4, 128, 8, kept[np.uint16]),
+        'sgm16': lambda: aggregate(census, 4, 128, 16, kept[np.uint16]),
+        'sgm16_float32': lambda: aggregate(census_f32, 4, 128, 16, kept[np.float32]),
     }
     # The volumes are freed on return: the whole pipeline then runs with only its own arrays.
     return {name: median_seconds(fn, repeat) for name, fn in stages.items()}
