@@ -262,8 +262,8 @@ def test_set_parameters_live(harness, pair):
         ({'census.window': 10}, 'window'),
         ({'census.window': 13}, 'census.window'),
         ({'image_transport': 'theora'}, 'image_transport'),
-        ({'bf16': 'maybe'}, "bf16 must be true, false or 'auto', got 'maybe'"),
-        ({'bf16': 1}, "bf16 must be true, false or 'auto', got 1"),
+        ({'bf16': 'maybe'}, "bf16 must be one of 'auto', 'true', 'false', got 'maybe'"),
+        ({'bf16': 1}, 'bf16 takes a str value, got 1'),
         ({'bf16': 0.0}, 'bf16'),
         ({'downsample': 3}, 'downsample'),
         ({'device': 'cuda:7'}, "device 'cuda:7'"),
@@ -271,9 +271,11 @@ def test_set_parameters_live(harness, pair):
         (result,) = harness.set_params(values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
     assert harness.node.get_parameter('census.theta').value == 0.6
-    for bf16 in (True, 'auto', False):  # true, false or 'auto': one parameter, two types
+    for bf16, field in ((True, True), ('auto', 'auto'), ('true', True), (False, False)):
         assert all(r.successful for r in harness.set_params({'bf16': bf16}))
-        assert harness.node.params.pipeline.config.bf16 == bf16
+        assert harness.node.params.pipeline.config.bf16 == field
+        param = harness.node.get_parameter('bf16')  # one type, whatever was sent
+        assert (param.type_, param.value) == (Parameter.Type.STRING, str(bf16).lower())
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity after set')
     overrides = {**harness.overrides, 'census.theta': 0.6, 'census.P1': 6.0,
