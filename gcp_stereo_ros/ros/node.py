@@ -6,8 +6,9 @@ Follows stereo_image_proc's disparity and point_cloud nodes. Subscribes `left/im
 `image_transport: compressed`; `left/image_raw`, `right/image_raw` with `rectify: true`)
 and `left/camera_info`, `right/camera_info`; publishes, stamped with the left header,
 `disparity` (stereo_msgs/DisparityImage), `gcp_mask` (mono8, 255 = GCP) and, only while
-subscribed, `confidence` (32FC1 CNN confidence), `depth` (32FC1 metres, REP 118) and
-`points2` (organized sensor_msgs/PointCloud2), and /diagnostics once a second.
+subscribed, `confidence` (32FC1 CNN confidence), `depth` (32FC1 metres, REP 118),
+`points2` (organized sensor_msgs/PointCloud2) and `disparity_color` (bgr8, the disparity
+colour-mapped for image viewers), and /diagnostics once a second.
 Parameters (config/gcp_stereo.yaml) are live.
 
 Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
@@ -52,7 +53,7 @@ from ..stereo.pipeline import mmap_large_arrays
 
 LOG_PERIOD = 5.0  # seconds between two logs of the same text
 STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
-ON_DEMAND = ('confidence', 'depth', 'points2')  # computed only while subscribed
+ON_DEMAND = ('confidence', 'depth', 'points2', 'disparity_color')  # only while subscribed
 
 
 class _Types:
@@ -95,7 +96,7 @@ class GcpStereoNode(Node):
         # As image_pipeline's publishers on Jazzy: reliable, depth 1, QoS overridable.
         qos = QoSOverridingOptions.with_default_policies()
         types = {'disparity': DisparityImage, 'gcp_mask': Image, 'confidence': Image,
-                 'depth': Image, 'points2': PointCloud2}
+                 'depth': Image, 'points2': PointCloud2, 'disparity_color': Image}
         self._pubs = {name: self.create_publisher(types[name], name, 1,
                                                   qos_overriding_options=qos)
                       for name in OUTPUTS}
