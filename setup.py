@@ -36,6 +36,7 @@ setup(
     entry_points={
         'console_scripts': [
             'gcp_stereo_node = gcp_stereo_ros.node:main',
+            'gcp_stereo_lifecycle_node = gcp_stereo_ros.ros.lifecycle_node:main',
             'point_cloud_node = gcp_stereo_ros.ros.point_cloud_node:main',
             'gcp-stereo-eval = gcp_stereo_ros.tools.evaluate:main',
             'gcp-stereo-bench = gcp_stereo_ros.tools.bench:main',

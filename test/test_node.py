@@ -5,11 +5,9 @@ Outputs, encodings, sync, live parameters, bad input; memory, start-up and shutd
 """
 import itertools
 import os
-from pathlib import Path
 import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 
@@ -17,7 +15,7 @@ import cv2
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.ros.camera import Rectifier, StereoModel
-from gcp_stereo_ros.ros.graph import start_node, stop
+from gcp_stereo_ros.ros.graph import executable, start_node, stop
 from gcp_stereo_ros.ros.node import GcpStereoNode
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import (array_to_compressed_fields, array_to_image_fields,
@@ -40,7 +38,7 @@ from skimage import data
 from stereo_msgs.msg import DisparityImage
 
 MAX_DISP = 32
-NODE_SCRIPT = str(Path(sys.executable).with_name('gcp_stereo_node'))
+NODE_SCRIPT = str(executable('gcp_stereo_node'))
 
 
 @pytest.fixture(scope='module')

@@ -59,9 +59,9 @@ class LiveParameters:
     def __init__(self, node, on_change):
         self._node = node
         self._on_change = on_change
-        for name in node.list_parameters([], 0).names:
-            if name.startswith('qos_overrides.'):  # declared read-only with their topic
-                node.undeclare_parameter(name)
+        for name in node.list_parameters([], 0).names:  # declared read-only with their topic
+            if name.startswith('qos_overrides.') and not node.describe_parameter(name).read_only:
+                node.undeclare_parameter(name)  # (read-only: a lifecycle node configured again)
         for p in PARAMS:
             _declare(node, p)
         check_names(n for n in node.list_parameters([], 0).names  # a misspelled start-up name
@@ -76,6 +76,14 @@ class LiveParameters:
         node.add_pre_set_parameters_callback(self._as_declared)
         node.add_on_set_parameters_callback(self._validate)
         node.add_post_set_parameters_callback(self._apply)
+
+    def close(self):
+        """Stop taking part in parameter requests and let the pipeline's memory go."""
+        node = self._node
+        node.remove_pre_set_parameters_callback(self._as_declared)
+        node.remove_on_set_parameters_callback(self._validate)
+        node.remove_post_set_parameters_callback(self._apply)
+        self.pipeline = None
 
     @staticmethod
     def _as_declared(params):

@@ -77,14 +77,24 @@ class GcpStereoNode(Node):
         # Every start-up value is declared, so LiveParameters sees (and refuses) unknown names.
         super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True,
                          **kwargs)
-        self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
-        self.errors = 0
-        self.last_error = ''
         try:  # raises for start-up values that cannot work (names, ranges, weights, device)
-            self.params = LiveParameters(self, on_change=self._on_params)
+            self._configure()
         except Exception:
             super().destroy_node()
             raise
+        self._activate()
+
+    def _configure(self):
+        """Declare and check the parameters and load the CNN (a lifecycle node's configure)."""
+        self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
+        self.errors = 0
+        self.last_error = ''
+        self._cancel = None  # no worker yet
+        self.stopped = True  # (no worker thread runs)
+        self.params = LiveParameters(self, on_change=self._on_params)
+
+    def _activate(self):
+        """Start the worker, subscribe and publish (a lifecycle node's activate)."""
         self._cancel = CancelFlag()
         self.stopped = False  # set by destroy_node: the worker thread has ended
         self._worker = NewestWorker(self._process, 'gcp_stereo_worker',
@@ -233,12 +243,18 @@ class GcpStereoNode(Node):
         self._log('error', f'unexpected {type(err).__name__} in the worker thread, which goes '
                            f'on: {err} (at {where.filename}:{where.lineno})')
 
-    def destroy_node(self):
+    def _stop(self):
+        """Stop the frame in progress and the worker thread, if started; say if it lingers."""
+        if self._cancel is None:
+            return
         self._cancel.set()
         self.stopped = self._worker.stop(STOP_SECONDS)
         if not self.stopped:
             self.get_logger().warn(f'the frame in progress did not stop within {STOP_SECONDS} s; '
                                    'exiting anyway')
+
+    def destroy_node(self):
+        self._stop()
         return super().destroy_node()
 
 
@@ -263,7 +279,7 @@ def _stop_once(signum, frame):
     raise KeyboardInterrupt
 
 
-def main(args=None):
+def main(args=None, node_class=GcpStereoNode, doc=__doc__):
     argv = sys.argv if args is None else args
     try:
         check_params_files(argv)  # rcl would say it with a traceback
@@ -271,7 +287,7 @@ def main(args=None):
     except Exception as err:  # rcl's own argument errors
         return _cannot_start(err)
     if extra and extra[0] in ('-h', '--help'):
-        print(__doc__.strip())
+        print(doc.strip())
         return 0
     if extra:  # ROS arguments go after --ros-args; anything else is a mistake
         print(f'{NODE_NAME}: error: unrecognized arguments: {" ".join(extra)} '
@@ -285,7 +301,7 @@ def main(args=None):
         try:
             mmap_large_arrays()
             rclpy.init(args=argv)
-            node = GcpStereoNode()
+            node = node_class()
         except Exception as err:  # settings that cannot work: one line, no traceback
             return _cannot_start(err)
         rclpy.spin(node)
