@@ -35,7 +35,7 @@ def ros():
 
 @pytest.fixture
 def graph(ros):
-    """A lifecycle node (unconfigured) and a peer, spun in a thread; overrides via .start()."""
+    """Yield start(**overrides): a lifecycle node (unconfigured) and a peer, spun in a thread."""
     made = []
 
     def start(**overrides):
