@@ -1,6 +1,7 @@
 """The managed node: each lifecycle transition does what it says, with real rclpy."""
 import threading
 import time
+import weakref
 
 import cv2
 from gcp_stereo_ros.ros.lifecycle_node import GcpStereoLifecycleNode
@@ -88,7 +89,9 @@ def test_transitions(graph):
         assert node.stopped  # the worker thread has ended
         wait_for(lambda: not any(p.get_subscription_count() for p in pubs.values())
                  and not peer.get_publishers_info_by_topic('/disparity'), 'unsubscribed')
+    net = weakref.ref(node.params.pipeline.net)
     assert node.trigger_cleanup() == SUCCESS and node.params is None
+    assert net() is None  # the CNN is gone, not waiting for a garbage collection
     assert node.trigger_configure() == SUCCESS  # and again, with the declared values
     assert node.get_parameter('max_disparity').value == 32
     assert node.trigger_activate() == SUCCESS

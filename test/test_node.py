@@ -14,6 +14,7 @@ import time
 import cv2
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.ros import diagnostics
 from gcp_stereo_ros.ros.camera import Rectifier, StereoModel
 from gcp_stereo_ros.ros.graph import executable, start_node, stop
 from gcp_stereo_ros.ros.node import GcpStereoNode
@@ -620,6 +621,34 @@ def test_a_busy_node_takes_no_images_then_the_newest(harness, pair, monkeypatch)
     wait_for(lambda: len(harness.disparity) == 2, 'the newest pair')
     assert stamp_of(harness.disparity[-1]) == newest
     assert {s: harness.node.input.received[s] - taken[s] for s in taken} == {'left': 1, 'right': 1}
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_a_slow_frame_is_no_missing_pair_and_arrivals_are_counted(harness, pair, monkeypatch):
+    """A frame longer than the no-pair window while a camera streams: OK, with its true rate."""
+    monkeypatch.setattr(diagnostics, 'NO_PAIR_SECONDS', 1.0)
+    release = threading.Event()
+    process = StereoPipeline.__call__
+    monkeypatch.setattr(StereoPipeline, '__call__',
+                        lambda pipe, *a, **k: release.wait(60) and process(pipe, *a, **k))
+    statuses, stamp = [], 1_000_000_000
+    harness.send_pair(*pair, 'rgb8', stamp)
+    wait_for(lambda: not harness.node._worker.idle, 'processing')
+    end = time.monotonic() + 3.0  # three times the window, 20 pairs a second
+    while time.monotonic() < end:
+        stamp += 50_000_000
+        harness.send_pair(*pair, 'rgb8', stamp)
+        statuses.append(harness.node.diagnostics.status())
+        time.sleep(0.05)
+    release.set()
+    wait_for(lambda: len(harness.disparity) == 2, 'the newest pair')
+    assert all(s.level == DiagnosticStatus.OK for s in statuses), [s.message for s in statuses]
+    assert {s.message for s in statuses} == {'processing'}
+    rate = float(status_of(DiagnosticArray(status=[harness.node.diagnostics.status()]))[1][
+        'left images/s'])
+    assert harness.node.input.received['left'] == 2  # taken: the first and the newest
+    assert harness.node.input.arrived['left'] > 40  # arrived: all the camera sent
+    assert rate > 10, rate  # 20/s sent; a window of at least 1 s, at most 3 s + 1 s
 
 
 # ---- reliability: errors, memory, start-up, shutdown --------------------------------------

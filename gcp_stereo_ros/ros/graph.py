@@ -46,7 +46,7 @@ def executable(name):
         path = Path(get_package_prefix('gcp_stereo_ros')) / 'lib' / 'gcp_stereo_ros' / name
         if path.is_file():
             return path
-    except PackageNotFoundError:
+    except (PackageNotFoundError, OSError):  # OSError: no AMENT_PREFIX_PATH at all
         pass
     return Path(sysconfig.get_path('scripts')) / name
 

@@ -12,8 +12,6 @@ The same node, parameters, topics and outputs as gcp_stereo_node, brought up in 
 Start: `ros2 run gcp_stereo_ros gcp_stereo_lifecycle_node` (unconfigured), or the launch file
 with `lifecycle:=true`.
 """
-import gc
-
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
 from .node import GcpStereoNode, main as node_main
@@ -60,8 +58,7 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
 
     def on_cleanup(self, state):
         self.params.close()
-        self.params = None
-        gc.collect()  # the CNN and the arrays, now
+        self.params = None  # the last reference to the pipeline, its CNN and its arrays
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state):
@@ -80,4 +77,4 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
 
 
 def main(args=None):
-    return node_main(args, GcpStereoLifecycleNode, __doc__)
+    return node_main(args, GcpStereoLifecycleNode, __doc__, 'gcp_stereo_lifecycle_node')

@@ -258,9 +258,9 @@ class GcpStereoNode(Node):
         return super().destroy_node()
 
 
-def _cannot_start(err):
+def _cannot_start(err, prog=NODE_NAME):
     """Print why the node cannot start, in one line; return the exit status."""
-    print(f'{NODE_NAME}: error: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
+    print(f'{prog}: error: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
           file=sys.stderr)
     return 2
 
@@ -279,19 +279,20 @@ def _stop_once(signum, frame):
     raise KeyboardInterrupt
 
 
-def main(args=None, node_class=GcpStereoNode, doc=__doc__):
+def main(args=None, node_class=GcpStereoNode, doc=__doc__, prog=NODE_NAME):
+    """Run `node_class` (this node, or one of the package's others, with its `doc`, `prog`)."""
     argv = sys.argv if args is None else args
     try:
         check_params_files(argv)  # rcl would say it with a traceback
         extra = remove_ros_args(argv)[1:]
     except Exception as err:  # rcl's own argument errors
-        return _cannot_start(err)
+        return _cannot_start(err, prog)
     if extra and extra[0] in ('-h', '--help'):
         print(doc.strip())
         return 0
     if extra:  # ROS arguments go after --ros-args; anything else is a mistake
-        print(f'{NODE_NAME}: error: unrecognized arguments: {" ".join(extra)} '
-              '(parameters go after --ros-args, e.g. --ros-args -p max_disparity:=192)',
+        print(f'{prog}: error: unrecognized arguments: {" ".join(extra)} '
+              '(parameters go after --ros-args, e.g. --ros-args -p NAME:=VALUE)',
               file=sys.stderr)
         return 2
     node = None
@@ -303,7 +304,7 @@ def main(args=None, node_class=GcpStereoNode, doc=__doc__):
             rclpy.init(args=argv)
             node = node_class()
         except Exception as err:  # settings that cannot work: one line, no traceback
-            return _cannot_start(err)
+            return _cannot_start(err, prog)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or shutdown, while starting or spinning

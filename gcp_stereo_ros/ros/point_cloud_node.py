@@ -16,12 +16,9 @@ Start: `ros2 run gcp_stereo_ros point_cloud_node`, or with `gcp_stereo_node` in 
 """
 import array
 import math
-import sys
 import time
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
@@ -30,6 +27,7 @@ from stereo_msgs.msg import DisparityImage
 
 from .camera import stereo_model
 from .messages import stamp_ns
+from .node import main as node_main
 from .pointcloud import disparity_of, geometry_messages
 from .rosimage import message_to_array
 from .stamp_sync import StampSync, tolerance_ns
@@ -52,6 +50,8 @@ def _ros_data(buffer):
 
 
 class PointCloudNode(Node):
+
+    stopped = True  # no thread of its own to wait for at exit
 
     def __init__(self, **kwargs):
         super().__init__(NAME, **kwargs)
@@ -119,18 +119,4 @@ class PointCloudNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=sys.argv if args is None else args)
-    node = None
-    try:
-        node = PointCloudNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as err:  # a start-up value that cannot work: one line
-        print(f'{NAME}: error: cannot start: {err}', file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return node_main(args, PointCloudNode, __doc__, NAME)
