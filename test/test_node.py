@@ -14,7 +14,7 @@ import time
 import cv2
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from gcp_stereo_ros.evaluation.datasets import load_frame
-from gcp_stereo_ros.ros import diagnostics
+from gcp_stereo_ros.ros import diagnostics, messages
 from gcp_stereo_ros.ros.camera import Rectifier, StereoModel
 from gcp_stereo_ros.ros.graph import executable, start_node, stop
 from gcp_stereo_ros.ros.node import GcpStereoNode
@@ -470,6 +470,29 @@ def test_depth_and_points2_equal_opencv_reprojection(harness, pair, monkeypatch)
         assert points[-1].point_step == step
         assert ''.join(f.name[0] for f in points[-1].fields) == names
         assert [f.offset for f in points[-1].fields] == [0, 4, 8, 12][:len(names)]
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False, 'lr_check': True}], indirect=True)
+def test_disparity_color_only_while_subscribed(harness, pair, monkeypatch):
+    """bgr8 for image panels: jet over 0 .. max_disparity - 1, black where invalid."""
+    calls, real = [], messages.color_map
+    monkeypatch.setattr(messages, 'color_map', lambda *a: calls.append(1) or real(*a))
+    harness.send_pair(*pair, 'rgb8', 1_000_000_000)
+    wait_for(lambda: harness.disparity, 'disparity')
+    assert not calls  # nobody subscribes: not computed
+    colored = harness.listen('disparity_color', Image)
+    harness.send_pair(*pair, 'rgb8', 2_000_000_000)
+    wait_for(lambda: colored, 'disparity_color')
+    msg = colored[0]
+    assert (msg.encoding, msg.height, msg.width, msg.step) == ('bgr8', 167, 247, 3 * 247)
+    bgr = np.frombuffer(msg.data, np.uint8).reshape(167, 247, 3)
+    raw = StereoPipeline(config_from_params(harness.overrides))(*pair).disparity
+    jet = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_JET)[:, 0]
+    valid = ~np.isnan(raw)
+    want = jet[np.clip(raw[valid] * 255 / (MAX_DISP - 1), 0, 255).astype(np.uint8)]
+    np.testing.assert_array_equal(bgr[valid], want)
+    assert (bgr[~valid] == 0).all() and 0.3 < valid.mean() < 1.0
+    assert tuple(jet[0]) == (128, 0, 0) and tuple(jet[255]) == (0, 0, 128)  # B first
 
 
 @pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
