@@ -264,8 +264,10 @@ def test_exact_and_approximate_sync(harness, pair):
         wait_for(lambda: len(harness.disparity) >= n, f'{n} disparity messages')
         return [stamp_of(m) for m in harness.disparity]
 
-    # no exact twin
-    harness.send_pair(left, right, 'rgb8', 1_000_000_000, right_stamp_ns=1_000_500_000)
+    # no exact twin; each image taken before the next of its side is sent (send_pair would
+    # not wait, and a newer left image replaces one not yet taken: depth 1)
+    harness.send_taken('left', left, 'rgb8', 1_000_000_000)
+    harness.send_taken('right', right, 'rgb8', 1_000_500_000)
     harness.send_taken('left', left, 'rgb8', 3_000_000_000)  # out of order: 3 s, then 2 s
     harness.send_taken('left', left, 'rgb8', 2_000_000_000)
     harness.send('right', right, 'rgb8', 2_000_000_000)
