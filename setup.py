@@ -24,11 +24,20 @@ setup(
     maintainer_email='maintainers@gcp-stereo-ros.invalid',
     description='CNN ground control points steering semi-global matching, as a ROS 2 node',
     license='BSD-3-Clause',
-    # colcon test picks its runner from here (setuptools no longer keeps tests_require).
-    extras_require={'test': ['pytest']},
+    # Optional features, which rosdistro has no keys for: `pip install .[cluster]` for
+    # gcp-stereo-batch on Ray, `.[cuda]` for device cuda (numba-cuda's kernels; a GPU also
+    # needs a CUDA build of torch). colcon test picks its runner from 'test' (setuptools no
+    # longer keeps tests_require). requirements.txt pins all of them for `make venv`.
+    extras_require={
+        'cluster': ['ray'],
+        'cuda': ['numba-cuda', 'cuda-bindings', 'cuda-core', 'nvidia-nvvm', 'nvidia-cuda-nvrtc'],
+        'test': ['pytest'],
+    },
     entry_points={
         'console_scripts': [
             'gcp_stereo_node = gcp_stereo_ros.node:main',
+            'gcp_stereo_lifecycle_node = gcp_stereo_ros.ros.lifecycle_node:main',
+            'point_cloud_node = gcp_stereo_ros.ros.point_cloud_node:main',
             'gcp-stereo-eval = gcp_stereo_ros.tools.evaluate:main',
             'gcp-stereo-bench = gcp_stereo_ros.tools.bench:main',
             'gcp-stereo-train = gcp_stereo_ros.tools.train:main',

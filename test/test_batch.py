@@ -10,13 +10,15 @@ from pathlib import Path
 import subprocess
 import sys
 
-from gcp_stereo_ros.tools import bag, batch, evaluate
-import numba
 import pytest
-import ray
-from rosbags.rosbag2 import Reader
-import torch
-import yaml
+
+EXTRA = "Ray is the optional extra .[cluster]: pip install 'gcp_stereo_ros[cluster]'"
+ray = pytest.importorskip('ray', reason=EXTRA)
+from gcp_stereo_ros.tools import bag, batch, evaluate  # noqa: E402, I100 (after the skip)
+import numba  # noqa: E402
+from rosbags.rosbag2 import Reader  # noqa: E402
+import torch  # noqa: E402
+import yaml  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = {'max_disparity': 32}  # the node's defaults otherwise (census, GCPs, shipped weights)

@@ -10,13 +10,16 @@ from pathlib import Path
 import subprocess
 import sys
 
-from gcp_stereo_ros.stereo import gpu
-from gcp_stereo_ros.stereo.config import StereoConfig
-from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from numba import cuda, typeof
-import numpy as np
 import pytest
-import torch
+
+EXTRA = "device cuda is the optional extra .[cuda]: pip install 'gcp_stereo_ros[cuda]'"
+pytest.importorskip('numba_cuda', reason=EXTRA)
+from gcp_stereo_ros.stereo import gpu  # noqa: E402, I100 (after the skip)
+from gcp_stereo_ros.stereo.config import StereoConfig  # noqa: E402
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline  # noqa: E402
+from numba import cuda, typeof  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 

@@ -3,21 +3,21 @@ The ROS 2 node with real rclpy.
 
 Outputs, encodings, sync, live parameters, bad input; memory, start-up and shutdown.
 """
+import itertools
 import math
 import os
-from pathlib import Path
 import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 
 import cv2
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.ros import diagnostics, messages
 from gcp_stereo_ros.ros.camera import Rectifier, StereoModel
-from gcp_stereo_ros.ros.graph import start_node, stop
+from gcp_stereo_ros.ros.graph import executable, start_node, stop
 from gcp_stereo_ros.ros.node import GcpStereoNode
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import (array_to_compressed_fields, array_to_image_fields,
@@ -28,18 +28,19 @@ from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from gcp_stereo_ros.tools.load import cpu_seconds
 import numpy as np
 import pytest
+from rcl_interfaces.msg import Log
 from rcl_interfaces.srv import SetParameters
 import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from skimage import data
 from stereo_msgs.msg import DisparityImage
 
 MAX_DISP = 32
-NODE_SCRIPT = str(Path(sys.executable).with_name('gcp_stereo_node'))
+NODE_SCRIPT = str(executable('gcp_stereo_node'))
 
 
 @pytest.fixture(scope='module')
@@ -50,13 +51,23 @@ def pair():
 
 
 class Harness:
-    """The node under test and a peer node that publishes pairs and records what comes back."""
+    """
+    The node under test and a peer node that publishes pairs and records what comes back.
 
-    def __init__(self, overrides, capfd):
-        self.capfd, self.stderr = capfd, ''
+    The node's log lines are read from /rosout, as `ros2 topic echo /rosout` shows them:
+    polling captured stderr (pytest's capfd) while the worker thread logs loses the lines
+    written between its read and its truncation of the capture file, now and then.
+    """
+
+    def __init__(self, overrides):
+        self.logs = []
+        self._marks = itertools.count()
         self.node = GcpStereoNode(
             parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
         self.peer = Node('test_peer')
+        self.peer.create_subscription(Log, '/rosout', self.logs.append, QoSProfile(
+            depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.pub = {s: self.peer.create_publisher(Image, topic, qos_profile_sensor_data)
                     for s, topic in self.node.input.topics().items()}
         self.pubs = {}
@@ -69,8 +80,20 @@ class Harness:
         self.executor.add_node(self.peer)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
-        wait_for(lambda: all(p.get_subscription_count() for p in self.pub.values()), 'subscribers')
+        wait_for(lambda: all(self.matched(p) for p in self.pub.values()), 'subscribers')
         assert self.set_client.wait_for_service(timeout_sec=10)
+
+    def matched(self, pub):
+        """
+        Return True once `pub` and the node's subscriptions of its topic know each other.
+
+        Discovery is not symmetric: the publisher may see the subscription before the
+        subscription sees the publisher, and a best-effort reader drops what it receives
+        from a writer it does not know yet.
+        """
+        subs = [s for s in self.node.subscriptions if s.topic_name == pub.topic_name]
+        return pub.get_subscription_count() >= len(subs) > 0 and all(
+            s.get_publisher_count() > 0 for s in subs)
 
     def send(self, side, array, encoding, stamp_ns, changes=None, frame_id='left_camera'):
         """Publish `array` as `encoding`, with Image fields then overwritten by `changes`."""
@@ -95,7 +118,7 @@ class Harness:
         if topic not in self.pubs:
             self.pubs[topic] = self.peer.create_publisher(cls or type(msg), topic,
                                                           qos_profile_sensor_data)
-            wait_for(lambda: self.pubs[topic].get_subscription_count() > 0, f'{topic} matched')
+            wait_for(lambda: self.matched(self.pubs[topic]), f'{topic} matched')
         self.pubs[topic].publish(msg)
 
     def send_info(self, side, fields, stamp_ns):
@@ -124,13 +147,29 @@ class Harness:
         return future.result().results
 
     def error_logs(self, level='ERROR'):
-        """Return the node's lines of `level` as the console shows them (rcutils: stderr)."""
-        self.stderr += self.capfd.readouterr().err
-        return [line for line in self.stderr.splitlines()
-                if line.startswith(f'[{level}]') and '[gcp_stereo_node]' in line]
+        """
+        Return the texts of the node's log lines of `level` so far, in order.
+
+        The node's logger sends a mark last; /rosout is reliable and keeps the order of one
+        publisher, so once the mark is here, so is every line the node logged before it.
+        """
+        mark = f'test: logs up to here ({next(self._marks)})'
+        self.node.get_logger().info(mark)
+        wait_for(lambda: any(m.msg == mark for m in self.logs), 'the log mark', 10)
+        return [m.msg for m in list(self.logs)
+                if m.name == 'gcp_stereo_node' and m.level == getattr(Log, level)]
 
     def close(self):
+        """
+        Stop spinning, then destroy the nodes.
+
+        Destroying a node that the spinning thread still uses is deferred by rclpy; the next
+        harness's node would then log through this one's /rosout publisher (rcl keeps one per
+        logger name), and nothing once that one goes.
+        """
         self.executor.shutdown()
+        self.thread.join(10)
+        assert not self.thread.is_alive()
         self.node.destroy_node()
         self.peer.destroy_node()
 
@@ -161,9 +200,9 @@ def ros():
 
 
 @pytest.fixture
-def harness(ros, request, capfd):
+def harness(ros, request):
     overrides = {'max_disparity': MAX_DISP, **getattr(request, 'param', {})}
-    h = Harness(overrides, capfd)
+    h = Harness(overrides)
     h.overrides = overrides
     yield h
     h.close()
@@ -227,8 +266,10 @@ def test_exact_and_approximate_sync(harness, pair):
         wait_for(lambda: len(harness.disparity) >= n, f'{n} disparity messages')
         return [stamp_of(m) for m in harness.disparity]
 
-    # no exact twin
-    harness.send_pair(left, right, 'rgb8', 1_000_000_000, right_stamp_ns=1_000_500_000)
+    # no exact twin; each image taken before the next of its side is sent (send_pair would
+    # not wait, and a newer left image replaces one not yet taken: depth 1)
+    harness.send_taken('left', left, 'rgb8', 1_000_000_000)
+    harness.send_taken('right', right, 'rgb8', 1_000_500_000)
     harness.send_taken('left', left, 'rgb8', 3_000_000_000)  # out of order: 3 s, then 2 s
     harness.send_taken('left', left, 'rgb8', 2_000_000_000)
     harness.send('right', right, 'rgb8', 2_000_000_000)
@@ -264,18 +305,20 @@ def test_set_parameters_live(harness, pair):
         ({'census.window': 10}, 'window'),
         ({'census.window': 13}, 'census.window'),
         ({'image_transport': 'theora'}, 'image_transport'),
-        ({'bf16': 'maybe'}, "bf16 must be true, false or 'auto', got 'maybe'"),
-        ({'bf16': 1}, "bf16 must be true, false or 'auto', got 1"),
-        ({'bf16': 0.0}, 'bf16'),
+        ({'bf16': 'maybe'}, "bf16 must be one of 'auto', 'true', 'false', got 'maybe'"),
+        ({'bf16': 1}, "expected 'Type.STRING' got 'Type.INTEGER'"),  # rclpy's own check
+        ({'bf16': 0.0}, "expected 'Type.STRING' got 'Type.DOUBLE'"),
         ({'downsample': 3}, 'downsample'),
         ({'device': 'cuda:7'}, "device 'cuda:7'"),
     ]:
         (result,) = harness.set_params(values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
     assert harness.node.get_parameter('census.theta').value == 0.6
-    for bf16 in (True, 'auto', False):  # true, false or 'auto': one parameter, two types
+    for bf16, field in ((True, True), ('auto', 'auto'), ('true', True), (False, False)):
         assert all(r.successful for r in harness.set_params({'bf16': bf16}))
-        assert harness.node.params.pipeline.config.bf16 == bf16
+        assert harness.node.params.pipeline.config.bf16 == field
+        param = harness.node.get_parameter('bf16')  # one type, whatever was sent
+        assert (param.type_, param.value) == (Parameter.Type.STRING, str(bf16).lower())
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity after set')
     overrides = {**harness.overrides, 'census.theta': 0.6, 'census.P1': 6.0,
@@ -432,6 +475,29 @@ def test_depth_and_points2_equal_opencv_reprojection(harness, pair, monkeypatch)
         assert [f.offset for f in points[-1].fields] == [0, 4, 8, 12][:len(names)]
 
 
+@pytest.mark.parametrize('harness', [{'use_gcp': False, 'lr_check': True}], indirect=True)
+def test_disparity_color_only_while_subscribed(harness, pair, monkeypatch):
+    """bgr8 for image panels: jet over 0 .. max_disparity - 1, black where invalid."""
+    calls, real = [], messages.color_map
+    monkeypatch.setattr(messages, 'color_map', lambda *a: calls.append(1) or real(*a))
+    harness.send_pair(*pair, 'rgb8', 1_000_000_000)
+    wait_for(lambda: harness.disparity, 'disparity')
+    assert not calls  # nobody subscribes: not computed
+    colored = harness.listen('disparity_color', Image)
+    harness.send_pair(*pair, 'rgb8', 2_000_000_000)
+    wait_for(lambda: colored, 'disparity_color')
+    msg = colored[0]
+    assert (msg.encoding, msg.height, msg.width, msg.step) == ('bgr8', 167, 247, 3 * 247)
+    bgr = np.frombuffer(msg.data, np.uint8).reshape(167, 247, 3)
+    raw = StereoPipeline(config_from_params(harness.overrides))(*pair).disparity
+    jet = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_JET)[:, 0]
+    valid = ~np.isnan(raw)
+    want = jet[np.clip(raw[valid] * 255 / (MAX_DISP - 1), 0, 255).astype(np.uint8)]
+    np.testing.assert_array_equal(bgr[valid], want)
+    assert (bgr[~valid] == 0).all() and 0.3 < valid.mean() < 1.0
+    assert tuple(jet[0]) == (128, 0, 0) and tuple(jet[255]) == (0, 0, 128)  # B first
+
+
 @pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
 def test_no_calibration_gives_one_warning_and_no_depth(harness, pair):
     left, right = pair
@@ -581,6 +647,34 @@ def test_a_busy_node_takes_no_images_then_the_newest(harness, pair, monkeypatch)
     wait_for(lambda: len(harness.disparity) == 2, 'the newest pair')
     assert stamp_of(harness.disparity[-1]) == newest
     assert {s: harness.node.input.received[s] - taken[s] for s in taken} == {'left': 1, 'right': 1}
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+def test_a_slow_frame_is_no_missing_pair_and_arrivals_are_counted(harness, pair, monkeypatch):
+    """A frame longer than the no-pair window while a camera streams: OK, with its true rate."""
+    monkeypatch.setattr(diagnostics, 'NO_PAIR_SECONDS', 1.0)
+    release = threading.Event()
+    process = StereoPipeline.__call__
+    monkeypatch.setattr(StereoPipeline, '__call__',
+                        lambda pipe, *a, **k: release.wait(60) and process(pipe, *a, **k))
+    statuses, stamp = [], 1_000_000_000
+    harness.send_pair(*pair, 'rgb8', stamp)
+    wait_for(lambda: not harness.node._worker.idle, 'processing')
+    end = time.monotonic() + 3.0  # three times the window, 20 pairs a second
+    while time.monotonic() < end:
+        stamp += 50_000_000
+        harness.send_pair(*pair, 'rgb8', stamp)
+        statuses.append(harness.node.diagnostics.status())
+        time.sleep(0.05)
+    release.set()
+    wait_for(lambda: len(harness.disparity) == 2, 'the newest pair')
+    assert all(s.level == DiagnosticStatus.OK for s in statuses), [s.message for s in statuses]
+    assert {s.message for s in statuses} == {'processing'}
+    rate = float(status_of(DiagnosticArray(status=[harness.node.diagnostics.status()]))[1][
+        'left images/s'])
+    assert harness.node.input.received['left'] == 2  # taken: the first and the newest
+    assert harness.node.input.arrived['left'] > 40  # arrived: all the camera sent
+    assert rate > 10, rate  # 20/s sent; a window of at least 1 s, at most 3 s + 1 s
 
 
 # ---- reliability: errors, memory, start-up, shutdown --------------------------------------

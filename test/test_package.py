@@ -12,15 +12,18 @@ from pathlib import Path
 import re
 import signal
 import subprocess
-import sys
 import time
+
+from gcp_stereo_ros.ros.graph import executable
 
 ROOT = Path(__file__).resolve().parents[1]
 # {console script: 'module:main'} as declared in setup.py
 SCRIPTS = dict(re.findall(r"'([\w-]+) = (gcp_stereo_ros[.\w]+:main)'",
                           (ROOT / 'setup.py').read_text()))
-BIN = Path(sys.executable).parent  # where pip installed the console scripts
-ENV = {**os.environ, 'PYTHONPATH': str(ROOT)}  # the scripts import this checkout
+# The scripts import this checkout, and find their installed metadata (importlib.metadata)
+# on the inherited path.
+ENV = {**os.environ, 'PYTHONPATH': os.pathsep.join(
+    [str(ROOT), *filter(None, [os.environ.get('PYTHONPATH')])])}
 
 
 def test_readme_commands_are_console_scripts():
@@ -33,7 +36,7 @@ def test_readme_commands_are_console_scripts():
 
 
 def call(script, *args, cwd):
-    return subprocess.run([BIN / script, *map(str, args)], env=ENV, cwd=cwd,
+    return subprocess.run([executable(script), *map(str, args)], env=ENV, cwd=cwd,
                           capture_output=True, text=True, timeout=120)
 
 
@@ -44,9 +47,10 @@ def call_all(calls, cwd):
 
 
 def test_every_script_is_installed():
-    assert len(SCRIPTS) == 9 and 'gcp_stereo_node' in SCRIPTS
-    missing = [s for s in SCRIPTS if not (BIN / s).is_file()]
-    assert not missing, f'not installed in {BIN}: {missing}'
+    assert len(SCRIPTS) == 11 and {'gcp_stereo_node', 'point_cloud_node',
+                                   'gcp_stereo_lifecycle_node'} <= set(SCRIPTS)
+    missing = [s for s in SCRIPTS if not executable(s).is_file()]
+    assert not missing, f'not installed where `ros2 run` or pip puts them: {missing}'
 
 
 def test_help_exits_0(tmp_path):
@@ -104,8 +108,9 @@ def test_user_errors_exit_nonzero_with_one_line(tmp_path):
 def test_node_exits_0_on_ctrl_c(tmp_path):
     log = tmp_path / 'node.log'
     with open(log, 'w') as stderr:
-        node = subprocess.Popen([BIN / 'gcp_stereo_node', '--ros-args', '-p', 'use_gcp:=false'],
-                                env=ENV, cwd=tmp_path, stderr=stderr)
+        node = subprocess.Popen(
+            [executable('gcp_stereo_node'), '--ros-args', '-p', 'use_gcp:=false'],
+            env=ENV, cwd=tmp_path, stderr=stderr)
     try:
         deadline = time.monotonic() + 60
         while 'ready' not in log.read_text() and node.poll() is None:

@@ -1,7 +1,7 @@
 """Parameter files as the node and `gcp-stereo-bag run --params` read them, ROS-free."""
 from pathlib import Path
 
-from gcp_stereo_ros.ros.params import config_from_params, load_params_file
+from gcp_stereo_ros.ros.params import coerce, config_from_params, load_params_file
 from gcp_stereo_ros.stereo.config import StereoConfig
 import pytest
 import yaml
@@ -76,10 +76,20 @@ def test_both_costs_are_checked_whichever_is_chosen():
 
 
 @pytest.mark.parametrize('values, reason', [
-    ({'bf16': 1}, "^bf16 must be true, false or 'auto', got 1$"),  # 1 == True, still refused
-    ({'bf16': 'maybe'}, "^bf16 must be true, false or 'auto', got 'maybe'$"),
+    ({'bf16': 1}, '^bf16 takes a str value, got 1$'),  # 1 == True, still refused
+    ({'bf16': 'maybe'}, "^bf16 must be one of 'auto', 'true', 'false', got 'maybe'$"),
     ({'max_disparity': 0}, r'^max_disp must be an integer in \[1, 1024\], got 0$'),
 ])
 def test_values_of_neither_cost_are_not_said_of_one(values, reason):
     with pytest.raises(ValueError, match=reason):
         config_from_params(values)
+
+
+def test_bf16_is_a_string_that_takes_booleans(tmp_path):
+    """bf16 keeps one type: 'auto', 'true', 'false'; YAML booleans are taken as the strings."""
+    for value, field in (('auto', 'auto'), ('true', True), ('false', False), (True, True),
+                         (False, False)):
+        assert coerce('bf16', value) == str(value).lower()
+        assert config_from_params({'bf16': value}).bf16 == field
+    path = write(tmp_path, {'/**': {'ros__parameters': {'bf16': False}}})
+    assert load_params_file(path) == {'bf16': 'false'}

@@ -301,7 +301,8 @@ def test_launch_file(colcon_install, monkeypatch):
     """
     classes = {'launch': ['LaunchDescription'],
                'launch.actions': ['DeclareLaunchArgument', 'SetEnvironmentVariable'],
-               'launch.substitutions': ['EnvironmentVariable', 'LaunchConfiguration'],
+               'launch.substitutions': ['EnvironmentVariable', 'LaunchConfiguration',
+                                        'PythonExpression'],
                'launch_ros.actions': ['Node'],
                'launch_ros.parameter_descriptions': ['ParameterValue']}
     fake = {}
@@ -320,17 +321,21 @@ def test_launch_file(colcon_install, monkeypatch):
     actions, = launch_file.generate_launch_description().args
     arguments = {a.args[0]: a.kwargs for a in actions
                  if isinstance(a, fake['DeclareLaunchArgument'])}
-    assert set(arguments) == {'namespace', 'params_file', 'use_sim_time'}
+    assert set(arguments) == {'namespace', 'params_file', 'use_sim_time', 'lifecycle'}
     assert all(len(a['description']) > 20 for a in arguments.values()), arguments
     assert arguments['use_sim_time']['default_value'] == 'false'
+    assert arguments['lifecycle']['default_value'] == 'false'
     assert Path(arguments['params_file']['default_value']).is_file()
     env, = (a for a in actions if isinstance(a, fake['SetEnvironmentVariable']))
     profiles = 'FASTRTPS_DEFAULT_PROFILES_FILE'
     assert env == fake['SetEnvironmentVariable'](profiles, fake['EnvironmentVariable'](
         profiles, default_value=str(share / 'config' / 'fastdds.xml')))
     node, = (a for a in actions if isinstance(a, fake['Node']))
-    assert (node.kwargs['package'], node.kwargs['executable']) == ('gcp_stereo_ros',
-                                                                   'gcp_stereo_node')
+    (expression,) = node.kwargs['executable'].args  # lifecycle:=true: the managed node
+    text = ''.join(x if isinstance(x, str) else f'{x.args[0]!r}' for x in expression)
+    assert node.kwargs['package'] == 'gcp_stereo_ros'
+    assert [eval(text.replace(repr('lifecycle'), value)) for value in ('true', 'false')] == [
+        'gcp_stereo_lifecycle_node', 'gcp_stereo_node']  # noqa: S307 (the file's expression)
     assert node.kwargs['parameters'] == [
         fake['LaunchConfiguration']('params_file'),
         {'use_sim_time': fake['ParameterValue'](fake['LaunchConfiguration']('use_sim_time'),

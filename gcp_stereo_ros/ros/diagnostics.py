@@ -27,11 +27,14 @@ class Diagnostics:
     """
     Publish the health of `node` (a GcpStereoNode) on /diagnostics once a second.
 
-    Values: images taken per second per side, pairs processed per second, latency from the
+    Values: images arrived per second per side (StereoInput.arrived: while the worker is
+    busy the node takes only the newest, and counts the others when it does), over the
+    last NO_PAIR_SECONDS; pairs processed per second, latency from the
     images' stamp to publishing (mean and max over the last second), pairs dropped as stale,
     images dropped unmatched, errors, device, CNN precision (what bf16 'auto' gave) and
     weights. Level WARN while crossed parameter values wait (P1 > P2, c_low > c_hi), when
-    images arrive but no pair has synced for NO_PAIR_SECONDS (the message says which topic
+    images were taken for NO_PAIR_SECONDS and none of them paired (a frame that takes longer
+    is no such case: the node takes no images meanwhile; the message says which topic
     is missing and why) or when pairs were skipped in the last second. (Weights that cannot
     be loaded stop the node at start-up and are refused when set.)
     """
@@ -53,13 +56,16 @@ class Diagnostics:
         """Return the DiagnosticStatus of the last second (and of NO_PAIR_SECONDS for WARN)."""
         node, inp = self._node, self._node.input
         now = time.monotonic()
-        sample = (now, inp.received['left'], inp.received['right'], node.processed, node.errors)
+        sample = (now, inp.received['left'], inp.received['right'], node.processed, node.errors,
+                  inp.arrived['left'], inp.arrived['right'])
         self._samples.append(sample)
         while len(self._samples) > 2 and now - self._samples[1][0] >= NO_PAIR_SECONDS:
             self._samples.popleft()
-        last = self._samples[-2] if len(self._samples) > 1 else (self._started, 0, 0, 0, 0)
-        seconds = max(now - last[0], 1e-9)
-        rates = [(a - b) / seconds for a, b in zip(sample[1:4], last[1:4])]
+        first = self._samples[0] if len(self._samples) > 1 else (self._started,) + (0,) * 6
+        last = self._samples[-2] if len(self._samples) > 1 else first
+        seconds = max(now - first[0], 1e-9)
+        rates = [(sample[i] - first[i]) / seconds for i in (5, 6)]
+        rates.append((sample[3] - last[3]) / max(now - last[0], 1e-9))
         latency = node.take_latencies()
         config = node.params.pipeline.config
         sync = inp.sync
@@ -77,7 +83,8 @@ class Diagnostics:
             'weights': config.weights or 'shipped with the package',
             **{f'{side} topic': topic for side, topic in inp.topics().items()},
         }
-        level, message = DiagnosticStatus.OK, 'processing' if rates[2] else 'waiting for images'
+        busy = rates[2] or not node._worker.idle
+        level, message = DiagnosticStatus.OK, 'processing' if busy else 'waiting for images'
         if node.params.pending:
             level = DiagnosticStatus.WARN
             message = ('; '.join(node.params.pending)
@@ -98,7 +105,8 @@ class Diagnostics:
         window = now - first[0]
         paired = now - (inp.paired_at or self._started)
         counts = {'left': sample[1] - first[1], 'right': sample[2] - first[2]}
-        if paired < NO_PAIR_SECONDS or window < NO_PAIR_SECONDS - 0.5 or not any(counts.values()):
+        if (inp.unpaired_since is None or now - inp.unpaired_since < NO_PAIR_SECONDS
+                or window < NO_PAIR_SECONDS - 0.5 or not any(counts.values())):
             return None
         topics = inp.topics()
         head = f'no stereo pair for {paired:.0f} s: '

@@ -11,6 +11,7 @@ import random
 import signal
 import subprocess
 import sys
+import sysconfig
 import threading
 from xml.etree import ElementTree
 
@@ -30,6 +31,24 @@ def package_file(relative):
         if (root / relative).is_file():
             return root / relative
     raise FileNotFoundError(f'{relative} not found beside the package or under {SHARE}')
+
+
+def executable(name):
+    """
+    Return the path of this package's executable `name`, as `ros2 run` finds it.
+
+    That is <prefix>/lib/gcp_stereo_ros/<name> under the package's prefix in the ament
+    index (a colcon install, or any prefix on AMENT_PREFIX_PATH), else the scripts folder
+    of this interpreter (where pip puts console scripts).
+    """
+    from ament_index_python.packages import get_package_prefix, PackageNotFoundError
+    try:
+        path = Path(get_package_prefix('gcp_stereo_ros')) / 'lib' / 'gcp_stereo_ros' / name
+        if path.is_file():
+            return path
+    except (PackageNotFoundError, OSError):  # OSError: no AMENT_PREFIX_PATH at all
+        pass
+    return Path(sysconfig.get_path('scripts')) / name
 
 
 def private_env(domain_id=None):

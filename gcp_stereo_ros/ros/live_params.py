@@ -10,7 +10,7 @@ from ..stereo.pipeline import StereoPipeline
 
 def descriptor(param):
     """Describe a `params.Param` for ROS: its description, range or choices."""
-    desc = ParameterDescriptor(description=param.description, dynamic_typing=param.dynamic)
+    desc = ParameterDescriptor(description=param.description)
     if param.choices:
         desc.additional_constraints = 'one of ' + ', '.join(map(str, param.choices))
     if param.range is not None:
@@ -48,7 +48,8 @@ class LiveParameters:
     A request is validated whole, by building the pipeline it asks for (a missing weights
     file is refused here, with its path), and refused with the reason if any value is
     invalid. A theta above the CNN's highest confidence is warned about, at start-up and
-    when set. A whole number set for a decimal parameter is taken as that decimal. No
+    when set. A whole number set for a decimal parameter is taken as that decimal, a boolean
+    for bf16 as 'true' or 'false' (bf16 stays a string). No
     parameter changes another. Values that cross within a cost (P1 > P2, c_low > c_hi), as when
     `ros2 param load` sets P1 before P2, are accepted and wait, with a warning: the pipeline
     keeps the last consistent values (`pending` says why) until a later value uncrosses
@@ -58,9 +59,9 @@ class LiveParameters:
     def __init__(self, node, on_change):
         self._node = node
         self._on_change = on_change
-        for name in node.list_parameters([], 0).names:
-            if name.startswith('qos_overrides.'):  # declared read-only with their topic
-                node.undeclare_parameter(name)
+        for name in node.list_parameters([], 0).names:  # declared read-only with their topic
+            if name.startswith('qos_overrides.') and not node.describe_parameter(name).read_only:
+                node.undeclare_parameter(name)  # (read-only: a lifecycle node configured again)
         for p in PARAMS:
             _declare(node, p)
         check_names(n for n in node.list_parameters([], 0).names  # a misspelled start-up name
@@ -72,16 +73,30 @@ class LiveParameters:
         self._warn()
         self.pending = []
         self._candidate = None
-        node.add_pre_set_parameters_callback(self._decimals)
+        node.add_pre_set_parameters_callback(self._as_declared)
         node.add_on_set_parameters_callback(self._validate)
         node.add_post_set_parameters_callback(self._apply)
 
+    def close(self):
+        """Stop taking part in parameter requests and let the pipeline's memory go."""
+        node = self._node
+        node.remove_pre_set_parameters_callback(self._as_declared)
+        node.remove_on_set_parameters_callback(self._validate)
+        node.remove_post_set_parameters_callback(self._apply)
+        self.pipeline = None
+
     @staticmethod
-    def _decimals(params):
-        return [Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
-                if (p.name in BY_NAME and p.type_ == Parameter.Type.INTEGER
-                    and isinstance(BY_NAME[p.name].default, float)) else p
-                for p in params]
+    def _as_declared(params):
+        """Give a whole number for a decimal parameter, or a boolean for bf16, its type."""
+        out = []
+        for p in params:
+            if p.name in BY_NAME and p.type_ in (Parameter.Type.INTEGER, Parameter.Type.BOOL):
+                try:
+                    p = Parameter(p.name, value=coerce(p.name, p.value))
+                except ValueError:
+                    pass  # refused with its reason by _validate
+            out.append(p)
+        return out
 
     def _validate(self, params):
         changes = {p.name: p.value for p in params if p.name in BY_NAME}  # not qos_overrides.*

@@ -7,14 +7,15 @@ rosbags' in the bag tools. Fields are passed by keyword, which both accept. `dat
 converts a uint8 numpy buffer to what the message class wants (array.array('B') for
 rclpy, the numpy array itself for rosbags).
 """
+import cv2
 import numpy as np
 
 from .rosimage import array_to_image_fields
 from ..stereo.images import mask_image
 from ..stereo.postprocess import valid_window
 
-OUTPUTS = ('disparity', 'gcp_mask', 'confidence', 'disparity_confidence', 'depth', 'points2')
-FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
+OUTPUTS = ('disparity', 'gcp_mask', 'confidence', 'disparity_confidence', 'depth', 'points2',
+           'disparity_color')
 
 
 def stamp_ns(header):
@@ -34,7 +35,8 @@ def output_messages(types, header, wanted, result, config, model, left, use_colo
     `result` is the pipeline's StereoResult, `model` the camera.StereoModel (None: no
     calibration, so no depth or points2 and f = t = 0), `left` the left image array the
     pipeline matched (the colour of points2). gcp_mask and confidence exist only with GCPs,
-    disparity_confidence only with a confidence fit (StereoResult.confidence).
+    disparity_confidence only with a confidence fit (StereoResult.confidence);
+    disparity_color is the disparity colour-mapped (bgr8, `color_map`).
     """
     out = {}
     if 'disparity' in wanted:
@@ -49,14 +51,27 @@ def output_messages(types, header, wanted, result, config, model, left, use_colo
     if result.confidence is not None and 'disparity_confidence' in wanted:
         out['disparity_confidence'] = image_message(types, header, result.confidence, '32FC1',
                                                     data)
-    if model is not None:
-        if 'depth' in wanted:
-            out['depth'] = image_message(types, header, model.depth(result.disparity),
-                                         '32FC1', data)
-        if 'points2' in wanted:
-            out['points2'] = points_message(types, header, model.points(result.disparity),
-                                            left if use_color else None, padded, data)
+    if 'disparity_color' in wanted:
+        out['disparity_color'] = image_message(
+            types, header, color_map(result.disparity, config.max_disp), 'bgr8', data)
+    if model is not None and wanted & {'depth', 'points2'}:
+        from .pointcloud import geometry_messages  # which builds on image_message
+        out.update(geometry_messages(types, header, wanted, result.disparity, model,
+                                     left if use_color else None, padded, data))
     return out
+
+
+def color_map(disp, max_disp):
+    """
+    Return (H, W, 3) uint8 RGB of a disparity for viewers: jet over 0 .. max_disp - 1.
+
+    The scale is fixed, so a colour means the same disparity in every frame; invalid (NaN)
+    pixels are black.
+    """
+    scaled = np.nan_to_num(disp * np.float32(255 / max(max_disp - 1, 1)), nan=0.0)
+    bgr = cv2.applyColorMap(np.clip(scaled, 0, 255).astype(np.uint8), cv2.COLORMAP_JET)
+    bgr[np.isnan(disp)] = 0
+    return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
 def disparity_message(types, header, disp, config, model=None, data=_same):
@@ -93,31 +108,3 @@ def image_message(types, header, array, encoding, data=_same):
     fields = array_to_image_fields(array, encoding)
     fields['data'] = data(fields['data'])
     return types.Image(header=header, **fields)
-
-
-def points_message(types, header, points, color=None, padded=True, data=_same):
-    """
-    Return an organized sensor_msgs/PointCloud2 of (H, W, 3) float32 points (NaN = invalid).
-
-    Laid out as stereo_image_proc's points2: float32 x, y, z, then with `color` ((H, W)
-    uint8 or uint16 gray, or (H, W, 3) uint8 RGB) an rgb field, a float32 whose bytes are
-    b, g, r, 0. `padded`: 16 bytes a point without colour, 32 with (x, y, z, pad, rgb,
-    pad); else 12 and 16.
-    """
-    h, w = points.shape[:2]
-    slots = (4 if padded else 3) + ((4 if padded else 1) if color is not None else 0)
-    cloud = np.zeros((h, w, slots), np.float32)
-    cloud[:, :, :3] = points
-    fields = [types.PointField(name=n, offset=4 * i, datatype=FLOAT32, count=1)
-              for i, n in enumerate('xyz')]
-    if color is not None:
-        c = np.asarray(color)
-        c = (c >> 8 if c.dtype == np.uint16 else c).astype(np.uint32)  # mono16: high byte
-        packed = c * 0x010101 if c.ndim == 2 else c[:, :, 0] << 16 | c[:, :, 1] << 8 | c[:, :, 2]
-        at = 4 if padded else 3
-        cloud[:, :, at] = packed.view(np.float32)
-        fields.append(types.PointField(name='rgb', offset=4 * at, datatype=FLOAT32, count=1))
-    return types.PointCloud2(
-        header=header, height=h, width=w, fields=fields, is_bigendian=False,
-        point_step=4 * slots, row_step=4 * slots * w, data=data(cloud.reshape(-1).view(np.uint8)),
-        is_dense=False)

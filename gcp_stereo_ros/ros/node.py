@@ -9,9 +9,9 @@ and `left/camera_info`, `right/camera_info`; publishes, stamped with the left he
 stereo_image_proc's), `gcp_mask` (mono8, 255 = GCP) and, only while subscribed,
 `confidence` (32FC1 CNN confidence), `disparity_confidence` (32FC1 probability that the
 published disparity is within 3 px; 0 where none is published), `depth` (32FC1 metres,
-REP 118, NaN where invalid) and `points2` (organized sensor_msgs/PointCloud2, NaN where
-invalid), and /diagnostics once a second. Each image is paired with the camera_info of its
-stamp.
+REP 118, NaN where invalid), `points2` (organized sensor_msgs/PointCloud2, NaN where
+invalid) and `disparity_color` (bgr8, the disparity colour-mapped for image viewers), and
+/diagnostics once a second. Each image is paired with the camera_info of its stamp.
 Parameters (config/gcp_stereo.yaml) are live.
 
 Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
@@ -57,7 +57,7 @@ from ..stereo.memory import mmap_large_arrays
 LOG_PERIOD = 5.0  # seconds between two logs of the same text
 STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
 # computed only while subscribed
-ON_DEMAND = ('confidence', 'disparity_confidence', 'depth', 'points2')
+ON_DEMAND = ('confidence', 'disparity_confidence', 'depth', 'points2', 'disparity_color')
 
 
 class _Types:
@@ -81,14 +81,24 @@ class GcpStereoNode(Node):
         # Every start-up value is declared, so LiveParameters sees (and refuses) unknown names.
         super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True,
                          **kwargs)
-        self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
-        self.errors = 0
-        self.last_error = ''
         try:  # raises for start-up values that cannot work (names, ranges, weights, device)
-            self.params = LiveParameters(self, on_change=self._on_params)
+            self._configure()
         except Exception:
             super().destroy_node()
             raise
+        self._activate()
+
+    def _configure(self):
+        """Declare and check the parameters and load the CNN (a lifecycle node's configure)."""
+        self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
+        self.errors = 0
+        self.last_error = ''
+        self._cancel = None  # no worker yet
+        self.stopped = True  # (no worker thread runs)
+        self.params = LiveParameters(self, on_change=self._on_params)
+
+    def _activate(self):
+        """Start the worker, subscribe and publish (a lifecycle node's activate)."""
         self._cancel = CancelFlag()
         self.stopped = False  # set by destroy_node: the worker thread has ended
         self._worker = NewestWorker(self._process, 'gcp_stereo_worker',
@@ -100,7 +110,8 @@ class GcpStereoNode(Node):
         # As image_pipeline's publishers on Jazzy: reliable, depth 1, QoS overridable.
         qos = QoSOverridingOptions.with_default_policies()
         types = {'disparity': DisparityImage, 'gcp_mask': Image, 'confidence': Image,
-                 'disparity_confidence': Image, 'depth': Image, 'points2': PointCloud2}
+                 'disparity_confidence': Image, 'depth': Image, 'points2': PointCloud2,
+                 'disparity_color': Image}
         self._pubs = {name: self.create_publisher(types[name], name, 1,
                                                   qos_overriding_options=qos)
                       for name in OUTPUTS}
@@ -235,18 +246,24 @@ class GcpStereoNode(Node):
         self._log('error', f'unexpected {type(err).__name__} in the worker thread, which goes '
                            f'on: {err} (at {where.filename}:{where.lineno})')
 
-    def destroy_node(self):
+    def _stop(self):
+        """Stop the frame in progress and the worker thread, if started; say if it lingers."""
+        if self._cancel is None:
+            return
         self._cancel.set()
         self.stopped = self._worker.stop(STOP_SECONDS)
         if not self.stopped:
             self.get_logger().warn(f'the frame in progress did not stop within {STOP_SECONDS} s; '
                                    'exiting anyway')
+
+    def destroy_node(self):
+        self._stop()
         return super().destroy_node()
 
 
-def _cannot_start(err):
+def _cannot_start(err, prog=NODE_NAME):
     """Print why the node cannot start, in one line; return the exit status."""
-    print(f'{NODE_NAME}: error: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
+    print(f'{prog}: error: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
           file=sys.stderr)
     return 2
 
@@ -265,19 +282,20 @@ def _stop_once(signum, frame):
     raise KeyboardInterrupt
 
 
-def main(args=None):
+def main(args=None, node_class=GcpStereoNode, doc=__doc__, prog=NODE_NAME):
+    """Run `node_class` (this node, or one of the package's others, with its `doc`, `prog`)."""
     argv = sys.argv if args is None else args
     try:
         check_params_files(argv)  # rcl would say it with a traceback
         extra = remove_ros_args(argv)[1:]
     except Exception as err:  # rcl's own argument errors
-        return _cannot_start(err)
+        return _cannot_start(err, prog)
     if extra and extra[0] in ('-h', '--help'):
-        print(__doc__.strip())
+        print(doc.strip())
         return 0
     if extra:  # ROS arguments go after --ros-args; anything else is a mistake
-        print(f'{NODE_NAME}: error: unrecognized arguments: {" ".join(extra)} '
-              '(parameters go after --ros-args, e.g. --ros-args -p max_disparity:=192)',
+        print(f'{prog}: error: unrecognized arguments: {" ".join(extra)} '
+              '(parameters go after --ros-args, e.g. --ros-args -p NAME:=VALUE)',
               file=sys.stderr)
         return 2
     node = None
@@ -287,9 +305,9 @@ def main(args=None):
         try:
             mmap_large_arrays()
             rclpy.init(args=argv)
-            node = GcpStereoNode()
+            node = node_class()
         except Exception as err:  # settings that cannot work: one line, no traceback
-            return _cannot_start(err)
+            return _cannot_start(err, prog)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or shutdown, while starting or spinning

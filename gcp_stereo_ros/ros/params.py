@@ -36,7 +36,8 @@ class Param:
     range: tuple | None = None  # noqa: A003 (read elsewhere as p.range, so keep the name)
     choices: tuple | None = None  # the only values allowed (said in the descriptor)
     cost: str | None = None  # the matching cost this value belongs to (None = any)
-    dynamic: bool = False  # takes values of more than one type (bf16: true, false or 'auto')
+    # {ROS value: StereoConfig value} where they differ (None: the same)
+    to_field: dict | None = None
 
 
 def _cost_params(cost):
@@ -77,8 +78,13 @@ PARAMS = (
           "CNN weights file ('' = the weights shipped with the package)", 'weights'),
     Param('device', _D.device,
           "'cpu', or 'cuda' / 'cuda:N' to run the whole pipeline on that GPU", 'device'),
-    Param('bf16', _D.bf16, "bfloat16 CNN descriptors: true, false or 'auto' (on where native: "
-          'CPUs with avx512_bf16 or AMX, CUDA)', 'bf16', dynamic=True),
+    # A string, so that it keeps one type through `ros2 param set/dump/load`; true and false
+    # given as booleans (`-p bf16:=false`, `ros2 param set ... bf16 false`) become 'true',
+    # 'false'.
+    Param('bf16', 'auto', "bfloat16 CNN descriptors: 'auto' (on where native: CPUs with "
+          "avx512_bf16 or AMX, CUDA), 'true' or 'false' (a string parameter; booleans are "
+          'taken as these strings)', 'bf16', choices=('auto', 'true', 'false'),
+          to_field={'auto': 'auto', 'true': True, 'false': False}),
     Param('subpixel', _D.subpixel, 'parabola fit for sub-pixel disparities', 'subpixel'),
     Param('median', _D.median, '3x3 median filter on the disparity', 'median'),
     # Invalidation (stereo.postprocess): invalid pixels are published as min_disparity - 1,
@@ -172,18 +178,27 @@ def coerce(name, value):
     """
     Return `value` as parameter `name` takes it: a whole number for a decimal one as float.
 
-    YAML `P1: 4`, `-p census.P1:=300` and `ros2 param set ... census.P1 300` give integers.
+    YAML `P1: 4`, `-p census.P1:=300` and `ros2 param set ... census.P1 300` give integers;
+    `bf16: false` gives a boolean, taken as the string 'false'.
     Raises ValueError for a value of the wrong type or not among the parameter's choices.
     """
     p = BY_NAME[name]
     if isinstance(p.default, float) and type(value) is int:
         value = float(value)
-    if type(value) is not type(p.default) and not p.dynamic:
+    if p.to_field is not None and type(value) is bool:  # bf16 false -> 'false'
+        value = str(value).lower()
+    if type(value) is not type(p.default):
         raise ValueError(f'{name} takes a {type(p.default).__name__} value, got {value!r}')
     if p.choices and value not in p.choices:
         raise ValueError(f'{name} must be one of {", ".join(map(repr, p.choices))}, '
                          f'got {value!r}')
     return value
+
+
+def _field_value(name, value):
+    """Return the StereoConfig value of parameter `name`'s ROS value."""
+    to_field = BY_NAME[name].to_field
+    return value if to_field is None else to_field[value]
 
 
 def config_from_params(values):
@@ -194,7 +209,7 @@ def config_from_params(values):
     `cost` can never fail. Raises ValueError for unknown names or invalid values.
     """
     check_names(values)
-    values = {n: coerce(n, v) for n, v in values.items()}
+    values = {n: _field_value(n, coerce(n, v)) for n, v in values.items()}
     # The values of neither cost first, so that their errors are not said of a cost.
     StereoConfig(**{BY_NAME[n].field: v for n, v in values.items()
                     if BY_NAME[n].field and n != 'cost' and BY_NAME[n].cost is None}).validate()

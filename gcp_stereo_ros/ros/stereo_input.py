@@ -63,8 +63,11 @@ class StereoInput:
     used as it is, the newest.
     Images are taken only while `idle()`, and `wake()` has the executor look again. The
     newest camera_info of each side is `info`; `received` and `last_stamp` count and date
-    the images taken, per side, and
-    `paired_at` is the time.monotonic() of the last pair. Images lost in transport or
+    the images taken, per side; `arrived` counts the images that arrived, taken or not:
+    the publisher's sequence number says how many it sent since the last one taken (the
+    middleware keeps only the newest while the node is busy). `paired_at` is the
+    time.monotonic() of the last pair and `unpaired_since` that of the first image taken
+    since then (None while the last image taken made a pair). Images lost in transport or
     announced (by camera_info) larger than the shared-memory segment are warned about
     through `log(severity, text)`, which rate-limits.
     """
@@ -78,8 +81,11 @@ class StereoInput:
         self._qos = {'qos_overriding_options': QoSOverridingOptions.with_default_policies()}
         self._wake = node.create_guard_condition(lambda: None)
         self.received = dict.fromkeys(SIDES, 0)
+        self.arrived = dict.fromkeys(SIDES, 0)
+        self._sequence = dict.fromkeys(SIDES)  # the last taken image's publication number
         self.last_stamp = dict.fromkeys(SIDES)
         self.paired_at = None
+        self.unpaired_since = None
         self._waiting = None  # a pair waiting for its camera_info
         self._stamped = False  # camera_info stamps have matched image stamps
         self._recent = []  # the stamps {side: ns} of the last pairs
@@ -96,7 +102,7 @@ class StereoInput:
         self._rectify = values['rectify']
         kind = CompressedImage if values['image_transport'] == 'compressed' else Image
         self.subs = {side: self._node.create_subscription(
-            kind, image_topic(side, values), lambda m, s=side: self._on_image(s, m),
+            kind, image_topic(side, values), lambda m, i, s=side: self._on_image(s, m, i),
             IMAGE_QOS, callback_group=self._group, event_callbacks=SubscriptionEventCallbacks(
                 message_lost=lambda _, s=side: self._on_lost(s)), **self._qos)
             for side in SIDES}
@@ -125,8 +131,13 @@ class StereoInput:
         """Have the executor look at the image subscriptions again (any thread)."""
         self._wake.trigger()
 
-    def _on_image(self, side, msg):
+    def _on_image(self, side, msg, info):
         self.received[side] += 1
+        sequence, last = info.get('publication_sequence_number'), self._sequence[side]
+        # 1 when the middleware gives no numbers, or a new publisher numbers from 1 again
+        counted = None not in (sequence, last) and sequence > last
+        self.arrived[side] += sequence - last if counted else 1
+        self._sequence[side] = sequence
         stamp = self.last_stamp[side] = stamp_ns(msg.header)
         pair = self.sync.add(side, stamp, msg, len(msg.data))
         if self.sync.unmatched_streak(side) == STREAK_WARN:
@@ -141,10 +152,12 @@ class StereoInput:
                 f'{other_side(side)} {self.last_stamp[other_side(side)]} ns). Check the stamps '
                 f'and the sync parameters{hint}.')
         if pair is not None:
-            self.paired_at = time.monotonic()
+            self.paired_at, self.unpaired_since = time.monotonic(), None
             self._release(force=True)
             self._waiting = pair
             self._release()
+        elif self.unpaired_since is None:
+            self.unpaired_since = time.monotonic()
 
     def _release(self, force=False):
         """Hand the waiting pair on once its camera_info is here (or `force`: anyway)."""

@@ -11,9 +11,16 @@ threads on the CPU, on CPU tensors: slow, for small crops only.
 from contextlib import contextmanager
 
 import numba
-from numba import cuda
 import numpy as np
 import torch
+
+try:
+    from numba import cuda
+except ImportError:  # numba-cuda is an optional extra
+    cuda = None
+
+MISSING = ("device 'cuda' needs numba-cuda, an optional extra of this package: "
+           "pip install 'gcp_stereo_ros[cuda]' (and a CUDA build of torch), or use device 'cpu'")
 
 SIMULATED = bool(numba.config.ENABLE_CUDASIM)
 THREADS = 128  # threads per block of every launch
@@ -29,6 +36,8 @@ def index(device):
 def check_device(device):
     """Raise ValueError unless numba-cuda and torch can both use the GPU `device` names."""
     n = index(device)
+    if cuda is None:
+        raise ValueError(f'device {device!r}: {MISSING}')
     if SIMULATED:
         if n != 0:
             raise ValueError(f"device {device!r}: the CUDA simulator has one device, 'cuda:0'")

@@ -33,7 +33,11 @@ import time
 
 import cv2
 import numba
-import ray
+try:
+    import ray
+except ImportError as err:  # an optional extra: say which
+    raise ImportError('gcp-stereo-batch runs on Ray, an optional extra of this package: '
+                      "pip install 'gcp_stereo_ros[cluster]'") from err
 import torch
 from tqdm import tqdm
 

@@ -1,0 +1,80 @@
+"""
+gcp_stereo_lifecycle_node: gcp_stereo_node as a managed (lifecycle) node, as nav2 runs its nodes.
+
+The same node, parameters, topics and outputs as gcp_stereo_node, brought up in steps by
+`ros2 lifecycle set /gcp_stereo_node <transition>` or a lifecycle manager:
+  configure   declares and checks the parameters and loads the CNN weights (a value that
+              cannot work fails the transition, saying why, and the node stays unconfigured)
+  activate    starts the worker, subscribes the inputs and publishes the outputs
+  deactivate  stops the frame in progress, unsubscribes and unpublishes
+  cleanup     lets the pipeline's memory and the CNN go
+  shutdown    from any state, all of the above that applies, within 2 s
+Start: `ros2 run gcp_stereo_ros gcp_stereo_lifecycle_node` (unconfigured), or the launch file
+with `lifecycle:=true`.
+"""
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
+
+from .node import GcpStereoNode, main as node_main
+from .params import NODE_NAME
+
+# what activate creates, as Node lists them: the Node method that destroys one
+DESTROY = {'publishers': 'destroy_publisher', 'subscriptions': 'destroy_subscription',
+           'timers': 'destroy_timer', 'guards': 'destroy_guard_condition'}
+
+
+class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
+
+    def __init__(self, **kwargs):
+        LifecycleNode.__init__(self, NODE_NAME,
+                               automatically_declare_parameters_from_overrides=True, **kwargs)
+        self.params = None
+        self._cancel = None
+        self.stopped = True
+        self._started = set()  # what activate created: (kind, entity)
+
+    def on_configure(self, state):
+        try:
+            self._configure()
+        except Exception as err:  # a value that cannot work: say why, stay unconfigured
+            self.params = None
+            self.get_logger().error(f'cannot configure: {" ".join(str(err).split())}')
+            return TransitionCallbackReturn.FAILURE
+        self.get_logger().info(f'configured: {self.params.pipeline.config}')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state):
+        before = self._entities()
+        self._activate()
+        self._started = self._entities() - before
+        return super().on_activate(state)
+
+    def on_deactivate(self, state):
+        self._stop()
+        for kind, entity in self._started:
+            getattr(self, DESTROY[kind])(entity)
+        self._started = set()
+        self._cancel = None
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state):
+        self.params.close()
+        self.params = None  # the last reference to the pipeline, its CNN and its arrays
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state):
+        if self._started:
+            self.on_deactivate(state)
+        if self.params is not None:
+            self.on_cleanup(state)
+        return TransitionCallbackReturn.SUCCESS
+
+    def _entities(self):
+        return {(kind, entity) for kind in DESTROY for entity in getattr(self, kind)}
+
+    def destroy_node(self):
+        self.on_shutdown(None)
+        return LifecycleNode.destroy_node(self)
+
+
+def main(args=None):
+    return node_main(args, GcpStereoLifecycleNode, __doc__, 'gcp_stereo_lifecycle_node')

@@ -1,0 +1,108 @@
+"""The managed node: each lifecycle transition does what it says, with real rclpy."""
+import threading
+import time
+import weakref
+
+import cv2
+from gcp_stereo_ros.ros.lifecycle_node import GcpStereoLifecycleNode
+from gcp_stereo_ros.ros.rosimage import array_to_image_fields
+import pytest
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import Image
+from skimage import data
+from stereo_msgs.msg import DisparityImage
+
+SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
+
+
+def wait_for(condition, what, timeout=60.0):
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, f'timed out waiting for {what}'
+        time.sleep(0.01)
+
+
+@pytest.fixture(scope='module')
+def ros():
+    rclpy.init()
+    yield
+    rclpy.shutdown()
+
+
+@pytest.fixture
+def graph(ros):
+    """Yield start(**overrides): a lifecycle node (unconfigured) and a peer, spun in a thread."""
+    made = []
+
+    def start(**overrides):
+        node = GcpStereoLifecycleNode(
+            parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+        peer = Node('lifecycle_peer')
+        executor = MultiThreadedExecutor(num_threads=3)
+        executor.add_node(node)
+        executor.add_node(peer)
+        thread = threading.Thread(target=executor.spin, daemon=True)
+        thread.start()
+        made.append((executor, thread, node, peer))
+        return node, peer
+    yield start
+    for executor, thread, node, peer in made:
+        executor.shutdown()
+        thread.join(10)
+        node.destroy_node()
+        peer.destroy_node()
+
+
+def image(array, stamp_ns):
+    fields = array_to_image_fields(array, 'rgb8')
+    msg = Image(**{**fields, 'data': fields['data'].tobytes()})
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+    return msg
+
+
+def test_transitions(graph):
+    left, right, _ = data.stereo_motorcycle()
+    pair = [cv2.resize(im, (247, 167), interpolation=cv2.INTER_AREA) for im in (left, right)]
+    node, peer = graph(max_disparity=32)
+    assert node.params is None and not node.has_parameter('census.theta')  # no CNN yet
+    assert node.trigger_configure() == SUCCESS
+    assert node.params.pipeline.net is not None and node.has_parameter('census.theta')
+    assert not peer.get_publishers_info_by_topic('/disparity')  # nothing published yet
+    disparity = []
+    peer.create_subscription(DisparityImage, 'disparity', disparity.append, 10)
+    pubs = {side: peer.create_publisher(Image, f'{side}/image_rect', qos_profile_sensor_data)
+            for side in ('left', 'right')}
+    for cycle in range(2):  # activate and deactivate twice: the second time as the first
+        assert node.trigger_activate() == SUCCESS
+        wait_for(lambda: all(p.get_subscription_count() for p in pubs.values())
+                 and all(s.get_publisher_count() for s in node.input.subs.values()), 'matched')
+        stamp = (cycle + 1) * 1_000_000_000
+        for side, array in zip(pubs, pair):
+            pubs[side].publish(image(array, stamp))
+        wait_for(lambda: disparity and disparity[-1].header.stamp.sec == cycle + 1, 'disparity')
+        assert node.trigger_deactivate() == SUCCESS
+        assert node.stopped  # the worker thread has ended
+        wait_for(lambda: not any(p.get_subscription_count() for p in pubs.values())
+                 and not peer.get_publishers_info_by_topic('/disparity'), 'unsubscribed')
+    net = weakref.ref(node.params.pipeline.net)
+    assert node.trigger_cleanup() == SUCCESS and node.params is None
+    assert net() is None  # the CNN is gone, not waiting for a garbage collection
+    assert node.trigger_configure() == SUCCESS  # and again, with the declared values
+    assert node.get_parameter('max_disparity').value == 32
+    assert node.trigger_activate() == SUCCESS
+    start = time.monotonic()
+    assert node.trigger_shutdown() == SUCCESS
+    assert time.monotonic() - start < 2.0 and node.stopped and node.params is None
+
+
+def test_configure_fails_with_the_reason(graph):
+    node, _ = graph(weights='/no/such/weights.pt')
+    assert node.trigger_configure() == FAILURE and node.params is None  # still unconfigured
+    assert node.set_parameters([Parameter('weights', value='')])[0].successful
+    assert node.trigger_configure() == SUCCESS  # once fixed, it configures
+    assert node.params.pipeline.config.weights == ''
