@@ -492,7 +492,7 @@ def test_disparity_color_only_while_subscribed(harness, pair, monkeypatch):
     raw = StereoPipeline(config_from_params(harness.overrides))(*pair).disparity
     jet = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_JET)[:, 0]
     valid = ~np.isnan(raw)
-    want = jet[np.clip(raw[valid] * 255 / (MAX_DISP - 1), 0, 255).astype(np.uint8)]
+    want = jet[np.clip(raw[valid] * np.float32(255 / (MAX_DISP - 1)), 0, 255).astype(np.uint8)]
     np.testing.assert_array_equal(bgr[valid], want)
     assert (bgr[~valid] == 0).all() and 0.3 < valid.mean() < 1.0
     assert tuple(jet[0]) == (128, 0, 0) and tuple(jet[255]) == (0, 0, 128)  # B first
