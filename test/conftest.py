@@ -14,6 +14,15 @@ os.environ.update(private_env(1 + os.getpid() % 100))
 DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 
 
+@pytest.fixture(scope='module')
+def ros():
+    """rclpy, initialized for the tests of one module and shut down after them."""
+    import rclpy
+    rclpy.init()
+    yield rclpy
+    rclpy.shutdown()
+
+
 @pytest.fixture(scope='session')
 def data_dir():
     """`../shared/data` beside the checkout; CI always has it, so its absence fails loudly."""

@@ -390,14 +390,6 @@ def test_existing_output_needs_force(tmp_path, capsys):
 
 
 # ---- play -------------------------------------------------------------------------------
-@pytest.fixture(scope='module')
-def ros():
-    import rclpy
-    rclpy.init()
-    yield rclpy
-    rclpy.shutdown()
-
-
 class Listener:
     """A node recording (arrival time, message) per topic, spun in a thread."""
 

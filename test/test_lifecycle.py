@@ -7,7 +7,6 @@ import cv2
 from gcp_stereo_ros.ros.lifecycle_node import GcpStereoLifecycleNode
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields
 import pytest
-import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.node import Node
@@ -25,13 +24,6 @@ def wait_for(condition, what, timeout=60.0):
     while not condition():
         assert time.monotonic() < end, f'timed out waiting for {what}'
         time.sleep(0.01)
-
-
-@pytest.fixture(scope='module')
-def ros():
-    rclpy.init()
-    yield
-    rclpy.shutdown()
 
 
 @pytest.fixture

@@ -192,13 +192,6 @@ def expected(overrides, left, right):
     return disp, result
 
 
-@pytest.fixture(scope='module')
-def ros():
-    rclpy.init()
-    yield
-    rclpy.shutdown()
-
-
 @pytest.fixture
 def harness(ros, request):
     overrides = {'max_disparity': MAX_DISP, **getattr(request, 'param', {})}

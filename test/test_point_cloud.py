@@ -7,7 +7,7 @@ import time
 import cv2
 from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.ros.camera import stereo_model
-from gcp_stereo_ros.ros.node import _ros_data, _Types
+from gcp_stereo_ros.ros.node import ros_data, RosTypes
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.point_cloud_node import PointCloudNode
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields
@@ -71,8 +71,8 @@ def frame():
     result = StereoPipeline(config)(left, right)
     info = infos(left.shape)
     model = stereo_model(info['left'], info['right'], left.shape, config.max_disp)
-    disparity = messages.disparity_message(_Types, stamped(Image(), 1).header,
-                                           result.disparity, config, model, _ros_data)
+    disparity = messages.disparity_message(RosTypes, stamped(Image(), 1).header,
+                                           result.disparity, config, model, ros_data)
     return left, result, model, info, disparity
 
 
@@ -143,9 +143,9 @@ def test_points_and_depth_equal_the_stereo_nodes(graph, frame):
                             'left/camera_info': stamped(info['left'], 1),
                             'right/camera_info': stamped(info['right'], 1)})
     wait_for(lambda: points and depth, 'points2 and depth')
-    want = messages.output_messages(_Types, disparity.header, {'points2', 'depth'}, result,
+    want = messages.output_messages(RosTypes, disparity.header, {'points2', 'depth'}, result,
                                     config_from_params({'max_disparity': 32}), model, left,
-                                    padded=False, data=_ros_data)
+                                    padded=False, data=ros_data)
     assert points[0].point_step == 16 and points[0].header.frame_id == 'left_camera'
     np.testing.assert_array_equal(cloud(points[0]), cloud(want['points2']))
     got_depth = np.frombuffer(depth[0].data, '<f4').reshape(depth[0].height, depth[0].width)

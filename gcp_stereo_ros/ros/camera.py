@@ -109,11 +109,16 @@ def stereo_model(left_info, right_info, shape, max_disp):
 
 
 def camera_model(info, shape, config):
-    """Return (StereoModel, None) of {side: CameraInfo or None} for `config`, or (None, why)."""
+    """
+    Return (StereoModel, None) of {side: CameraInfo or None} for `config`, or (None, why).
+
+    `why` is the text: the error itself, with its traceback, would hold the caller's frame
+    and all it refers to (the pipeline, its CNN) in a cycle until a garbage collection.
+    """
     try:
         return stereo_model(info['left'], info['right'], shape, config.max_disp), None
     except ValueError as err:
-        return None, err
+        return None, str(err)
 
 
 def depth_scale(model):

@@ -60,7 +60,9 @@ STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
 ON_DEMAND = ('confidence', 'disparity_confidence', 'depth', 'points2', 'disparity_color')
 
 
-class _Types:
+class RosTypes:
+    """The message classes `messages` builds with: rclpy's."""
+
     Image = Image
     RegionOfInterest = RegionOfInterest
     DisparityImage = DisparityImage
@@ -68,7 +70,7 @@ class _Types:
     PointField = PointField
 
 
-def _ros_data(buffer):
+def ros_data(buffer):
     """Wrap uint8 numpy data as array.array('B'), the one form rclpy takes unchecked."""
     out = array.array('B')
     out.frombytes(buffer)
@@ -217,9 +219,9 @@ class GcpStereoNode(Node):
                 self._warn_once(f'no depth or points2: {why}')
         if not header.frame_id:
             self._warn_once(f'{topics["left"]}: empty frame_id; outputs carry it as they are')
-        msgs = output_messages(_Types, header, wanted, result, config, model, left,
+        msgs = output_messages(RosTypes, header, wanted, result, config, model, left,
                                values['use_color'], not values['avoid_point_cloud_padding'],
-                               _ros_data)
+                               ros_data)
         for name, msg in msgs.items():
             self._pubs[name].publish(msg)
 

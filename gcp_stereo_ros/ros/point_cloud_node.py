@@ -14,7 +14,6 @@ topic (`qos_overrides./left/image_rect_color.subscription.reliability`, ...).
 
 Start: `ros2 run gcp_stereo_ros point_cloud_node`, or with `gcp_stereo_node` in one launch.
 """
-import array
 import math
 import time
 
@@ -22,12 +21,12 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from .camera import stereo_model
 from .messages import stamp_ns
-from .node import main as node_main
+from .node import main as node_main, ros_data, RosTypes
 from .pointcloud import disparity_of, geometry_messages
 from .rosimage import message_to_array
 from .stamp_sync import StampSync, tolerance_ns
@@ -35,18 +34,6 @@ from .stamp_sync import StampSync, tolerance_ns
 NAME = 'point_cloud_node'
 LOG_PERIOD = 30.0  # seconds between two logs of the same text (stereo_image_proc: 30 s)
 INPUTS = ('left/image_rect_color', 'left/camera_info', 'right/camera_info', 'disparity')
-
-
-class _Types:
-    Image = Image
-    PointCloud2 = PointCloud2
-    PointField = PointField
-
-
-def _ros_data(buffer):
-    out = array.array('B')
-    out.frombytes(buffer)
-    return out
 
 
 class PointCloudNode(Node):
@@ -105,8 +92,8 @@ class PointCloudNode(Node):
                 self._log('warn', f'could not fill the colour of points2: {err}')
                 color = np.zeros(disparity.shape, np.uint8)
         padded = not self.get_parameter('avoid_point_cloud_padding').value
-        msgs = geometry_messages(_Types, disparity_msg.header, wanted, disparity, model, color,
-                                 padded, _ros_data)
+        msgs = geometry_messages(RosTypes, disparity_msg.header, wanted, disparity, model, color,
+                                 padded, ros_data)
         for name, out in msgs.items():
             self._pubs[name].publish(out)
 
