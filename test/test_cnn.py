@@ -4,8 +4,8 @@ from pathlib import Path
 
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.stereo.cnn import (_first_layer_bf16, calibrated, confidence, DEFAULT_WEIGHTS,
-                                       device_confidence, GcpNet, load_net, network_input,
-                                       STRIP_ROWS)
+                                       descriptors, device_confidence, GcpNet, load_net,
+                                       network_input, STRIP_ROWS)
 from gcp_stereo_ros.stereo.gcp import gcp_quality, select
 from gcp_stereo_ros.stereo.images import gray_pair, standardize
 from gcp_stereo_ros.tools import train
@@ -84,6 +84,20 @@ def test_forward_matches_dense_descriptors(net, tsukuba):
     np.testing.assert_allclose(got, vol[ys, xs, ds], atol=1e-5)
     with pytest.raises(ValueError, match='left_patches'):
         net(patches[0][:, :, :7, :7], patches[1])
+
+
+@pytest.mark.parametrize('bf16', [False, True])
+def test_fused_conv_relu_equals_the_plain_ops(net, tsukuba, bf16, monkeypatch):
+    """The oneDNN conv+ReLU primitive (CPU) against conv2d then ReLU (what a GPU runs)."""
+    x = network_input(*gray_pair(tsukuba.left[:40, :60], tsukuba.right[:40, :60]))
+    fused = descriptors(net, x, bf16)
+    monkeypatch.setattr(torch.backends.mkldnn, 'is_available', lambda: False)
+    plain = descriptors(net, x, bf16)
+    assert fused.shape == plain.shape == (2, 40, 60, 64) and fused.dtype == plain.dtype
+    if bf16:  # each output rounded to bfloat16 once, from float32 sums in either order
+        torch.testing.assert_close(fused.float(), plain.float(), rtol=1e-2, atol=1e-2)
+    else:
+        torch.testing.assert_close(fused, plain, rtol=1e-5, atol=1e-5)
 
 
 def test_bf16_close_to_fp32(net, tsukuba):

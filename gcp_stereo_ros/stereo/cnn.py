@@ -294,11 +294,12 @@ def _conv_relu(conv, x, weight, bias):
     a separate ReLU was a quarter of the CNN's time with two cores (a pass over each layer's
     output; README, "Speed").
     """
-    geometry = list(conv.padding), list(conv.stride), list(conv.dilation), conv.groups
     if x.device.type == 'cpu' and torch.backends.mkldnn.is_available():
-        return torch.ops.mkldnn._convolution_pointwise(x, weight, bias, *geometry, 'relu', [],
-                                                       '')
-    return F.relu(F.conv2d(x, weight, bias, *geometry), inplace=True)
+        return torch.ops.mkldnn._convolution_pointwise(
+            x, weight, bias, list(conv.padding), list(conv.stride), list(conv.dilation),
+            conv.groups, 'relu', [], '')
+    return F.relu(F.conv2d(x, weight, bias, stride=conv.stride, padding=conv.padding,
+                           dilation=conv.dilation, groups=conv.groups), inplace=True)
 
 
 def _first_layer_bf16(conv, x):
