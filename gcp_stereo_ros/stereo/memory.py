@@ -54,13 +54,19 @@ def volume_arithmetic(cfg):
 # the later stages too.
 PIXEL_BYTES = 80
 # While the CNN runs: the gray pair, its network input and the CNN outputs (8 + 8 + 12 bytes
-# per pixel), and of one strip four layer outputs' worth (a convolution's, its ReLU's, the
-# descriptors copied out, and oneDNN's scratchpad, which it keeps for the largest so far).
+# per pixel), and of one strip five layer outputs' worth: a layer's input and output, the
+# descriptors copied out, oneDNN's scratchpad (which it keeps for the largest so far), and
+# one for the heap, which keeps the blocks freed within a pair for reuse (mmap_large_arrays)
+# rather than unmapping them (with four, a peak once passed the bound by 0.2 %).
 CNN_PIXEL_BYTES = 28
-STRIP_LAYERS = 4
+STRIP_LAYERS = 5
 # With downsample > 1, per full-size pixel: the gray pair (8), the outputs blown up (17),
 # rounded up.
 FULL_PIXEL_BYTES = 32
+# The invalidation and the confidence, per full-size pixel, while the volumes are kept: the
+# outputs alive then (31) and the features and their fit (121, measured with tracemalloc at
+# 741x500).
+POST_PIXEL_BYTES = 152
 
 
 def memory_bytes(cfg, height, width):
@@ -72,7 +78,8 @@ def memory_bytes(cfg, height, width):
     of each path from above, W x D each), plus whichever needs more: the CNN's arrays with
     one strip's activations (two images, 64 float32 maps of STRIP_ROWS + 8 rows), or
     PIXEL_BYTES per pixel for the later stages; with downsample, FULL_PIXEL_BYTES per
-    full-size pixel. Measured peaks stay below it (README, "Failures, memory and shutdown").
+    full-size pixel; or, if more, POST_PIXEL_BYTES per full-size pixel for the invalidation
+    and confidence. Measured peaks stay below it (README, "Failures, memory and shutdown").
     """
     fixed, per_disparity = _memory_terms(cfg, height, width)
     return fixed + per_disparity * cfg.matched_disp
@@ -92,7 +99,7 @@ def _memory_terms(cfg, height, width):
         fixed = max(fixed, CNN_PIXEL_BYTES * h * w + STRIP_LAYERS * strip)
     if f > 1:
         fixed += FULL_PIXEL_BYTES * height * width
-    return fixed, per_disparity
+    return max(fixed, POST_PIXEL_BYTES * height * width), per_disparity
 
 
 def check_memory(cfg, height, width):
