@@ -2,7 +2,7 @@
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.stereo.cost import cost_volume
 from gcp_stereo_ros.stereo.images import gray_pair
-from gcp_stereo_ros.stereo.sgm import aggregate, directions, disparity
+from gcp_stereo_ros.stereo.sgm import aggregate, directions, winners
 import numpy as np
 import pytest
 
@@ -51,7 +51,7 @@ def test_aggregate_equals_reference(paths, shape, dtype):
     assert got.dtype == dtype
     np.testing.assert_array_equal(got, want.astype(dtype))
     # WTA takes the first minimum on ties, as np.argmin does.
-    np.testing.assert_array_equal(disparity(got), np.argmin(want, axis=2).astype(np.float32))
+    np.testing.assert_array_equal(winners(got)[0], np.argmin(want, axis=2).astype(np.float32))
 
 
 @pytest.mark.parametrize('paths', [8, 16])
@@ -78,7 +78,7 @@ def test_uint16_sums_up_to_the_limit_are_exact():
     want = reference_aggregate(cost, 1500, 3000, 16)
     assert want.max() == 64000
     np.testing.assert_array_equal(got, want)
-    np.testing.assert_array_equal(disparity(got), np.argmin(want, axis=2).astype(np.float32))
+    np.testing.assert_array_equal(winners(got)[0], np.argmin(want, axis=2).astype(np.float32))
     with pytest.raises(ValueError, match='overflow'):
         aggregate(cost.astype(np.uint16), 1500, 3100, 16)
     with pytest.raises(ValueError, match='integer penalties'):
@@ -102,4 +102,4 @@ def test_negative_or_non_finite_costs_rejected(bad):
     with pytest.raises(ValueError, match='1 cells that are negative, NaN or infinite'):
         aggregate(cost, 1, 2)
     with pytest.raises(ValueError, match='1 cells that are negative, NaN or infinite'):
-        disparity(cost)
+        winners(cost)

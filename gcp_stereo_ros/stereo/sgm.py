@@ -18,7 +18,6 @@ Two number types, same code: float32, and uint16 for integer costs (Census dista
 integer penalties). uint16 is exact and halves the memory traffic, which bounds the sweeps;
 it needs paths * (max C + P2) <= 65535, since L_r <= C + P2 and S sums `paths` of them.
 """
-import cv2
 from llvmlite import ir
 import numba
 from numba import njit, prange, types
@@ -417,22 +416,3 @@ def winners(total, subpixel=False, lr_check=False, cancel=None):
     _wta(total, subpixel, 1 if lr_check else -1, out, consistent, s_best, s_second,
          flag_array(cancel))
     return out, consistent, s_best, s_second
-
-
-def disparity(total, subpixel=False, lr_check=False, median=False, cancel=None):
-    """
-    Return the winner-takes-all disparity, float32 (H, W), from summed path costs S.
-
-    `winners`' disparity after the optional 3x3 `median`, NaN where `lr_check` finds it
-    inconsistent (applied after the median, so invalid pixels stay NaN).
-    """
-    disp, consistent = winners(total, subpixel, lr_check, cancel)[:2]
-    return finish(disp, consistent, median)
-
-
-def finish(disp, consistent, median):
-    """Return the WTA disparity `disp` after the optional median, NaN where not `consistent`."""
-    if median:
-        disp = cv2.medianBlur(disp, 3)
-    disp[~consistent] = np.nan
-    return disp

@@ -268,9 +268,9 @@ def winners(total, subpixel=False, lr_check=False):
     """
     Return the WTA of S on the GPU: (disparity, consistent, s_best, s_second), tensors (H, W).
 
-    disparity float32, consistent bool (all True without `lr_check`); `sgm.finish` turns the
-    two into `sgm.disparity`'s output. s_best = S(best d) and s_second = min S(d) over
-    |d - best| > 1 (+inf where there is none), float32.
+    As `sgm.winners`': disparity float32, consistent bool (all True without `lr_check`),
+    s_best = S(best d) and s_second = min S(d) over |d - best| > 1 (+inf where there is
+    none), float32.
     """
     h, w, nd = total.shape
     device = total.device
