@@ -228,7 +228,7 @@ def test_training_smoke_loss_falls(tsukuba):
         net = GcpNet()
         optimizer = torch.optim.SGD(net.parameters(), lr=0.01, momentum=0.9)
         model = train.CropLoss(net)
-        losses = np.array([train.train_step(model, optimizer, [view], rng, 1)
+        losses = np.array([train.train_step(model, optimizer, [view], rng, 1)[0]
                            for _ in range(200)])
     finally:
         torch.set_num_threads(threads)

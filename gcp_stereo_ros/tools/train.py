@@ -1,23 +1,15 @@
 """
 Train the Siamese GCP CNN (`gcp_stereo_ros.stereo.cnn.GcpNet`) with the paper's hinge loss.
 
-For every left pixel (x, y) with known, non-occluded disparity d (rounded to an integer),
-one positive right patch at x - d + o_pos, o_pos uniform in {-1, 0, 1}, and one negative at
-x - d + o_neg, |o_neg| uniform in {4, ..., 8} with a random sign; loss
-max(0, 0.2 + s_neg - s_pos), averaged. Pixels whose positive or negative falls outside the
-right image are skipped. Where the right-view ground truth exists, pixels failing a
-left-right GT check (|gt_right(x - d) - d| > 1) count as occluded, and the mirrored pair
-(right and left images flipped horizontally and swapped, GT = flipped gt_right) is added
-as one more training view.
-
-Dense training: a step draws `--batch-size` random crops (32x256 left pixels; each from a
-view chosen uniformly). The branch runs fully convolutionally over the left crop and over
-the right-image columns its positives and negatives can reach (both taken from the
-replicate-padded standardized image, exactly as `cnn.confidence` sees it), and the scores
-of every GT pixel in the crop are gathered from the two descriptor maps: the same examples
-as per-patch training at a small fraction of the cost. SGD with momentum, cosine learning
-rate decay over all steps, fixed seed (numpy generator for crops and offsets, torch for the
-initial weights).
+The examples (`train_crops`): every GT pixel of random crops (32x256 left pixels; each from
+a view chosen uniformly) against a positive and a negative right patch, max(0, 0.2 + s_neg -
+s_pos) averaged; occluded pixels (failing a left-right GT check where the right GT exists)
+left out, and the mirrored pair (right and left images flipped horizontally and swapped, GT
+= flipped gt_right) added as one more view. With `--augment` every crop is resampled (scale,
+shear, vertical jitter, contrast and brightness per view); `--hard-negatives F` scores a
+fraction F of the pixels on their hardest negative. SGD with momentum, cosine learning rate
+decay over all steps, fixed seed (numpy generator for crops and offsets, torch for the
+initial weights); `--bf16` runs the convolutions in bfloat16.
 
 Several processes or machines: start it with torchrun (e.g. `torchrun --standalone
 --nproc-per-node 2 -m gcp_stereo_ros.tools.train ...`). The processes form a
@@ -45,7 +37,6 @@ probability, which is what theta thresholds.
 """
 import argparse
 import atexit
-from dataclasses import dataclass
 import os
 from pathlib import Path
 import shlex
@@ -54,144 +45,37 @@ import time
 
 import numpy as np
 import torch
-from torch import distributed as dist, nn
+from torch import distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 import yaml
 
 from .cli import console_main
+from .train_crops import Augment, crop_scores, CropLoss, draw_crop, hinge, views
 from ..evaluation.datasets import load_frames
-from ..stereo.cnn import confidence, GcpNet, network_input, PAD
-from ..stereo.gcp import gcp_quality, right_view_agrees
-from ..stereo.images import gray_pair
+from ..stereo.cnn import confidence, GcpNet
+from ..stereo.gcp import gcp_quality
 
-MARGIN = 0.2
 CROP = (32, 256)  # left pixels per crop (rows, columns)
-NEG_OFFSETS = (4, 8)
-LR_CHECK_PX = 1.0
 CALIBRATION_PX = 1.0  # the calibrated confidence is P(|CNN disparity - truth| <= 1 px)
 CALIBRATION_BINS = 400
 
 
-@dataclass
-class View:
-    """One training pair: padded standardized images (1, 1, H+8, W+8), integer GT (-1 = none)."""
-
-    name: str
-    left: torch.Tensor
-    right: torch.Tensor
-    disp: np.ndarray
-
-
-@dataclass
-class Crop:
-    """The GT pixels of a left window of a view, with their positive and negative columns."""
-
-    view: View
-    y0: int
-    x0: int
-    h: int
-    w: int
-    ii: np.ndarray  # rows and columns of the pixels in the window
-    jj: np.ndarray
-    pos: np.ndarray  # right-image columns
-    neg: np.ndarray
-
-
-def _padded(gray, device):
-    return network_input(gray).to(device).contiguous(memory_format=torch.channels_last)
-
-
-def _view(name, left, right, gt, valid, gt_right, device):
-    lg, rg = gray_pair(left, right)
-    valid = valid & np.isfinite(gt)
-    d = np.where(valid, np.rint(np.nan_to_num(gt)), -1).astype(np.int64)
-    if gt_right is not None:  # occluded pixels fail the left-right GT check
-        valid &= right_view_agrees(np.where(valid, gt, 0), gt_right, LR_CHECK_PX)
-        d[~valid] = -1
-    return View(name, _padded(lg, device), _padded(rg, device), d)
-
-
-def views(frame, device='cpu'):
-    """Training views of a frame: itself, plus its mirror when the right GT is known."""
-    if frame.gt is None:
-        raise ValueError(f'{frame.name}: no ground truth, cannot train on it')
-    out = [_view(frame.name, frame.left, frame.right, frame.gt, frame.valid, frame.gt_right,
-                 device)]
-    if frame.gt_right is not None:
-        flip = np.fliplr
-        out.append(_view(frame.name + ' (mirrored)', flip(frame.right), flip(frame.left),
-                         flip(frame.gt_right), np.isfinite(frame.gt_right), flip(frame.gt),
-                         device))
-    return out
-
-
-def draw_crop(view, rng, y0=0, x0=0, h=None, w=None):
+def train_step(model, optimizer, train_views, rng, batch_size, bf16=False, rank=0, world=1,
+               aug=None, hard=0.0):
     """
-    Return the Crop of the left window [y0, y0+h) x [x0, x0+w), its offsets drawn from `rng`.
-
-    None if no GT pixel of the window has its positive and negative inside the right image.
-    """
-    height, width = view.disp.shape
-    h, w = h or height, w or width
-    d = view.disp[y0:y0 + h, x0:x0 + w]
-    ii, jj = np.nonzero(d >= 0)
-    xr = x0 + jj - d[ii, jj]
-    n = len(ii)
-    pos = xr + rng.integers(-1, 2, n)
-    neg = xr + rng.integers(NEG_OFFSETS[0], NEG_OFFSETS[1] + 1, n) * rng.choice((-1, 1), n)
-    keep = (np.minimum(pos, neg) >= 0) & (np.maximum(pos, neg) < width)
-    if not keep.any():
-        return None
-    return Crop(view, y0, x0, h, w, ii[keep], jj[keep], pos[keep], neg[keep])
-
-
-def crop_scores(net, crop):
-    """(s_pos, s_neg) of every pixel of `crop`."""
-    c = crop
-    lo, hi = int(min(c.pos.min(), c.neg.min())), int(max(c.pos.max(), c.neg.max())) + 1
-    fl = net.features(c.view.left[:, :, c.y0:c.y0 + c.h + 2 * PAD, c.x0:c.x0 + c.w + 2 * PAD])[0]
-    fr = net.features(c.view.right[:, :, c.y0:c.y0 + c.h + 2 * PAD, lo:hi + 2 * PAD])[0]
-    ii, jj, pos, neg = (torch.from_numpy(a).to(fl.device)
-                        for a in (c.ii, c.jj, c.pos - lo, c.neg - lo))
-    a = fl[:, ii, jj]
-    return (a * fr[:, ii, pos]).sum(0), (a * fr[:, ii, neg]).sum(0)
-
-
-def hinge(s_pos, s_neg):
-    """Return the hinge loss of every pixel."""
-    return torch.relu(MARGIN + s_neg - s_pos)
-
-
-class CropLoss(nn.Module):
-    """The summed hinge loss of the pixels of some crops under `net` (what DDP wraps)."""
-
-    def __init__(self, net):
-        super().__init__()
-        self.net = net
-
-    def forward(self, crops):
-        s_pos, s_neg = (torch.cat(s) for s in zip(*(crop_scores(self.net, c) for c in crops)))
-        return hinge(s_pos, s_neg).sum()
-
-
-def train_step(model, optimizer, train_views, rng, batch_size, bf16=False, rank=0, world=1):
-    """
-    Take one SGD step on `batch_size` random crops; return the loss (float).
+    Take one SGD step on `batch_size` random crops; return (mean loss, pixels scored).
 
     `model`: a CropLoss, in DistributedDataParallel when `world` processes train. Each of
-    them draws every crop from its `rng` (the same stream in all) and scores crops rank,
-    rank + world, ... (as DistributedSampler deals out a batch); its summed loss is scaled
-    so that DDP's average of the gradients is the gradient of the mean loss over the pixels
-    of all the crops: the step one process takes.
+    them draws every crop from its `rng` (the same stream in all; `aug` and `hard` as
+    `train_crops.draw_crop` takes them) and scores crops rank, rank + world, ... (as
+    DistributedSampler deals out a batch); its summed loss is scaled so that DDP's average
+    of the gradients is the gradient of the mean loss over the pixels of all the crops: the
+    step one process takes.
     """
     crops = []
     while len(crops) < batch_size:
-        view = train_views[rng.integers(len(train_views))]
-        height, width = view.disp.shape
-        h, w = min(CROP[0], height), min(CROP[1], width)
-        crop = draw_crop(view, rng, int(rng.integers(height - h + 1)),
-                         int(rng.integers(width - w + 1)), h, w)
+        crop = draw_crop(train_views[rng.integers(len(train_views))], rng, *CROP, aug, hard)
         if crop is not None:
             crops.append(crop)
     pixels = sum(len(c.ii) for c in crops)
@@ -204,7 +88,7 @@ def train_step(model, optimizer, train_views, rng, batch_size, bf16=False, rank=
     total = total.detach()
     if world > 1:
         dist.all_reduce(total)
-    return total.item() / pixels
+    return total.item() / pixels, pixels
 
 
 def validate(net, frames, thetas):
@@ -283,8 +167,12 @@ def _select(sources, names, what):
     return [found[n] for n in names] if names else list(found.values())
 
 
-def _report(epoch, train_loss, val):
-    parts = [f'epoch {epoch}: train loss {train_loss:.4f}']
+def _report(epoch, record, val):
+    parts = [f'epoch {epoch}: train loss {record["train_loss"]:.4f}, '
+             f'{record["examples_per_second"]:.0f} examples/s']
+    if val:
+        parts[0] += (f'; mean val loss {np.mean([v["loss"] for v in val.values()]):.4f}, '
+                     f'WTA acc {np.mean([v["wta_accuracy"] for v in val.values()]):.1f}%')
     for name, v in val.items():
         gcps = ', '.join(f'theta {t}: {d:.1f}%/{a:.1f}%' for t, (d, a) in v['gcp'].items())
         parts.append(f'  {name}: val loss {v["loss"]:.4f}, WTA acc {v["wta_accuracy"]:.1f}%, '
@@ -317,6 +205,11 @@ def parse_args(argv):
     p.add_argument('--bf16', action='store_true',
                    help='bfloat16 autocast for the convolutions (about 2x faster on CPUs with '
                         'AVX512-BF16); weights, loss and validation stay float32')
+    p.add_argument('--augment', action='store_true',
+                   help='resample every crop: scale, shear, vertical jitter, contrast and '
+                        'brightness per view (train_crops.Augment)')
+    p.add_argument('--hard-negatives', type=float, default=0.0, metavar='F',
+                   help='fraction of the pixels scored on their hardest negative (0 to 1)')
     p.add_argument('--threads', type=int,
                    help="torch CPU threads (default: torch's choice); 1 is much faster than 2 "
                         'when other processes keep a core busy')
@@ -331,6 +224,8 @@ def parse_args(argv):
             p.error(f'--{k.replace("_", "-")} must be at least 1')
     if args.lr <= 0 or not 0 <= args.momentum < 1:
         p.error('--lr must be positive and --momentum in [0, 1)')
+    if not 0 <= args.hard_negatives <= 1:
+        p.error(f'--hard-negatives must be in [0, 1], got {args.hard_negatives}')
     if not (args.device == 'cpu' or args.device.startswith('cuda')):
         p.error(f"--device must be 'cpu' or 'cuda[:N]', got {args.device!r}")
     world = int(os.environ.get('WORLD_SIZE', '1'))
@@ -393,6 +288,7 @@ def main(argv=None):
         rng.bit_generator.state = ckpt['rng']
         torch.set_rng_state(ckpt['torch_rng'])
         start, history, seconds = ckpt['epoch'], ckpt['history'], ckpt['seconds']
+    aug = Augment() if args.augment else None
     model = CropLoss(net) if world == 1 else DistributedDataParallel(CropLoss(net))
     if rank == 0:
         tqdm.write(f'training on {len(train_views)} views: '
@@ -403,19 +299,22 @@ def main(argv=None):
         net.train()
         bar = tqdm(range(steps), desc=f'epoch {epoch}/{args.epochs}', mininterval=2.0,
                    disable=rank > 0)
-        losses = []
+        losses, pixels = [], 0
         for _ in bar:
-            losses.append(train_step(model, optimizer, train_views, rng, args.batch_size,
-                                     args.bf16, rank, world))
+            loss, n = train_step(model, optimizer, train_views, rng, args.batch_size, args.bf16,
+                                 rank, world, aug, args.hard_negatives)
+            losses.append(loss)
+            pixels += n
             scheduler.step()
             bar.set_postfix(loss=f'{np.mean(losses[-50:]):.4f}')
+        rate = pixels / (time.perf_counter() - t)
         val = validate(net, val_frames, args.val_thetas)
         seconds += time.perf_counter() - t
         history.append({'epoch': epoch, 'train_loss': float(np.mean(losses)), 'seconds': seconds,
-                        'val': val})
+                        'examples_per_second': rate, 'val': val})
         if rank > 0:
             continue
-        _report(epoch, history[-1]['train_loss'], val)
+        _report(epoch, history[-1], val)
         if args.checkpoint_dir:
             args.checkpoint_dir.mkdir(parents=True, exist_ok=True)
             torch.save({'net': net.state_dict(), 'optimizer': optimizer.state_dict(),
@@ -445,7 +344,8 @@ def main(argv=None):
     meta = {'command': shlex.join(['gcp-stereo-train', *command]),
             'train_frames': [f.name for f in train_frames],
             'val_frames': [f.name for f in val_frames], 'seed': args.seed, 'epochs': args.epochs,
-            'bf16': args.bf16, 'processes': world, 'seconds': seconds,
+            'bf16': args.bf16, 'augment': args.augment,
+            'hard_negatives': args.hard_negatives, 'processes': world, 'seconds': seconds,
             'torch': str(torch.__version__), 'history': history}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     torch.save({**blob, 'meta': meta}, args.out)
