@@ -1,4 +1,5 @@
 """The managed node: each lifecycle transition does what it says, with real rclpy."""
+import gc
 import threading
 import time
 import weakref
@@ -11,7 +12,8 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
+from rcl_interfaces.msg import Log
+from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from skimage import data
 from stereo_msgs.msg import DisparityImage
@@ -98,3 +100,37 @@ def test_configure_fails_with_the_reason(graph):
     assert node.set_parameters([Parameter('weights', value='')])[0].successful
     assert node.trigger_configure() == SUCCESS  # once fixed, it configures
     assert node.params.pipeline.config.weights == ''
+
+
+def test_a_destroyed_node_is_gone_and_leaves_the_logs_of_its_name(ros):
+    """
+    Destroy a lifecycle node, start another of its name: the new one's logs reach /rosout.
+
+    rcl keeps one /rosout publisher per logger name. rclpy's LifecycleNode left its state
+    machine, and with it the rcl node, to the garbage collector, which then took that
+    publisher from the new node: in the test suite, the log lines of test_node's nodes
+    stopped at a random point after this module.
+    """
+    old = GcpStereoLifecycleNode(parameter_overrides=[Parameter('max_disparity', value=32)])
+    assert old.trigger_configure() == SUCCESS and old.trigger_activate() == SUCCESS
+    old.destroy_node()
+    new, peer = Node('gcp_stereo_node'), Node('lifecycle_peer')
+    logs = []
+    peer.create_subscription(Log, '/rosout', logs.append, QoSProfile(
+        depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    executor = MultiThreadedExecutor(num_threads=2)
+    executor.add_node(peer)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        del old
+        gc.collect()  # what the garbage collector does at some point
+        new.get_logger().info('still heard')
+        wait_for(lambda: any(m.msg == 'still heard' and m.name == 'gcp_stereo_node'
+                             for m in logs), 'the new node on /rosout', 10)
+    finally:
+        executor.shutdown()
+        thread.join(10)
+        new.destroy_node()
+        peer.destroy_node()

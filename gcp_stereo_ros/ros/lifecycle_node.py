@@ -72,8 +72,17 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
         return {(kind, entity) for kind in DESTROY for entity in getattr(self, kind)}
 
     def destroy_node(self):
+        """
+        Shut down, destroy the node, and its state machine with it.
+
+        rclpy's LifecycleNode (Jazzy 7.1) leaves its state machine, which holds the rcl node,
+        to the garbage collector: the node lived on after destroy_node, and when it went
+        it took rcl's /rosout publisher of its name from whichever node of that name logged
+        through it then (the logs of a node composed later in the process stopped).
+        """
         self.on_shutdown(None)
-        return LifecycleNode.destroy_node(self)
+        LifecycleNode.destroy_node(self)
+        self._state_machine.destroy_when_not_in_use()
 
 
 def main(args=None):
