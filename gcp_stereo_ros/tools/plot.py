@@ -10,6 +10,10 @@ gcp-stereo-plot: the paper's experiment figures as matplotlib PNGs.
          error (> 3 px) among the x % most confident published pixels against x, for the
          disparity_confidence, the CNN confidence and the oracle (the error itself), mean
          over the frames, and each curve's area: how confidence measures are compared.
+  training
+         the curves of a `gcp-stereo-train` run from its weights or a checkpoint: training
+         and validation hinge loss, WTA accuracy and GCP density/accuracy per epoch (means
+         over the validation frames), against hours of training.
 """
 import argparse
 import itertools
@@ -199,6 +203,46 @@ def bars(args):
     print(f'wrote {path}')
 
 
+def training(args):
+    import torch  # only this figure needs it
+    try:
+        blob = torch.load(args.weights, map_location='cpu', weights_only=True)
+        history = blob['meta']['history'] if 'meta' in blob else blob['history']
+        hours = np.array([h['seconds'] for h in history]) / 3600
+        val = [h['val'] for h in history]
+    except (OSError, RuntimeError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f'{args.weights}: not gcp-stereo-train weights or a checkpoint of it '
+                         f'({e!r})') from None
+    if not history or not val[0]:
+        raise ValueError(f'{args.weights}: no validated epoch to draw')
+
+    def mean(key, pick=lambda v: v):
+        return [np.mean([pick(f[key]) for f in v.values()]) for v in val]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    axes[0].plot(hours, [h['train_loss'] for h in history], marker='.', label='training')
+    axes[0].plot(hours, mean('loss'), marker='.', label='validation')
+    axes[0].set_title('hinge loss')
+    axes[1].plot(hours, mean('wta_accuracy'), marker='.')
+    axes[1].set_title('CNN alone (WTA): accuracy within 3 px, mean (%)')
+    for theta in val[0][next(iter(val[0]))]['gcp']:
+        for i, (what, style) in enumerate((('density', '--'), ('accuracy', '-'))):
+            axes[2].plot(hours, mean('gcp', lambda g, t=theta, i=i: g[t][i]), style,
+                         marker='.', label=f'{what}, raw cosine > {theta}')
+    axes[2].set_title('GCPs: density and accuracy, mean (%)')
+    for ax in axes:
+        ax.set_xlabel('hours of training')
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    axes[2].legend(fontsize=7)
+    fig.tight_layout()
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / 'training.png'
+    fig.savefig(path, dpi=110)
+    print(f'{len(history)} epochs, {hours[-1]:.2f} h: final validation loss {mean("loss")[-1]:.4f}'
+          f', WTA accuracy {mean("wta_accuracy")[-1]:.2f} %')
+    print(f'wrote {path}')
+
+
 @console_main('gcp-stereo-plot')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-plot', description=__doc__,
@@ -231,6 +275,11 @@ def main(argv=None):
     zp.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
     zp.add_argument('--out', type=Path, default=Path('out/plots'))
     zp.set_defaults(run=sparsify)
+    tp = sub.add_parser('training', help='loss and validation curves of a training run')
+    tp.add_argument('--weights', type=Path, required=True,
+                    help='gcp-stereo-train weights or one of its checkpoints')
+    tp.add_argument('--out', type=Path, default=Path('out/plots'))
+    tp.set_defaults(run=training)
     args = ap.parse_args(argv)
     args.run(args)
 
