@@ -8,11 +8,11 @@ import cv2
 from gcp_stereo_ros.ros.lifecycle_node import GcpStereoLifecycleNode
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields
 import pytest
+from rcl_interfaces.msg import Log
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rcl_interfaces.msg import Log
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from skimage import data
