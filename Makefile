@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test bench clean
+.PHONY: venv demo test docs bench clean
 
 venv: $(STAMP)
 
@@ -19,6 +19,10 @@ demo: venv
 
 test: venv
 	$(PY) -m pytest -q test
+
+# The manual (doc/, Sphinx + MyST) as HTML in build/docs; any warning fails the build.
+docs: venv
+	$(PY) -m sphinx -W --keep-going -b html doc build/docs
 
 bench: venv
 	$(PY) -m gcp_stereo_ros.tools.bench

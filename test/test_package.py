@@ -1,5 +1,5 @@
 """
-Packaging: the console scripts the README names are installed and behave as such.
+Packaging: the console scripts the README and the manual name are installed and behave.
 
 Each installed script runs as a subprocess: exit status 0 on success, and on a user error
 non-zero with one line on stderr that names the problem.
@@ -27,9 +27,13 @@ ENV = {**os.environ, 'PYTHONPATH': os.pathsep.join(
 
 
 def test_readme_commands_are_console_scripts():
-    named = set(re.findall(r'`(gcp-stereo-[\w-]+|gcp_stereo_node)`',
-                           (ROOT / 'README.md').read_text()))
+    pattern = r'`(gcp-stereo-[\w-]+|gcp_stereo_node)`'
+    named = set(re.findall(pattern, (ROOT / 'README.md').read_text()))
     assert len(named) >= 8 and named <= set(SCRIPTS), named - set(SCRIPTS)
+    manual = {p.name: set(re.findall(pattern, p.read_text()))
+              for p in (ROOT / 'doc').glob('*.md')}
+    assert all(names <= set(SCRIPTS) for names in manual.values()), manual
+    assert len(set().union(*manual.values())) >= 8, manual
     for target in SCRIPTS.values():
         module, _, func = target.partition(':')
         assert callable(getattr(importlib.import_module(module), func))

@@ -5,7 +5,7 @@ from ament_pep257.main import main
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKED = ['gcp_stereo_ros', 'test', 'launch', 'setup.py']
+CHECKED = ['gcp_stereo_ros', 'test', 'launch', 'doc', 'setup.py']
 
 
 @pytest.mark.linter

@@ -247,7 +247,8 @@ def test_memory_estimate_bounds_the_measured_peak(motorcycle):
     """
     Check memory_bytes against the measured peak RSS of a frame after one of the same size.
 
-    Measured (README, gcp-stereo-load --steps --pipeline): 1 to 9 % above the peak in fp32.
+    Measured (doc/failures.md, gcp-stereo-load --steps --pipeline): 1 to 9 % above the peak
+    in fp32.
     """
     mmap_large_arrays()  # as the node and the bag tool do
     left, right, _ = motorcycle

@@ -1,7 +1,7 @@
 """
 What is published and how sure it is (stereo.postprocess), on real data and hand-made cases.
 
-The KITTI figures are the README's ("What is published"); the thresholds leave room for
+The KITTI figures are the manual's (doc/published.md); the thresholds leave room for
 float rounding and bf16 differences, and any real regression crosses them.
 """
 import cv2
@@ -106,7 +106,7 @@ def kitti(data_dir):
 
 
 @pytest.mark.parametrize('name, density, bad3, near', [
-    # measured (README): 000031 84.9 % / 1.49 % / 0.56 %, 000070 88.0 % / 1.03 % / 0.14 %
+    # measured (doc/published.md): 000031 84.9 % / 1.49 % / 0.56 %, 000070 88.0 % / 1.03 % / 0.14 %
     ('kitti2015/000031_10', 80.0, 2.5, 0.8), ('kitti2012/000070_10', 84.0, 1.5, 0.45)])
 def test_defaults_publish_what_the_match_supports(kitti, name, density, bad3, near):
     frame, result, raw = kitti[name]

@@ -10,7 +10,7 @@ WTA disparity before any test), so the fit holds whatever other test is on. Writ
 entry per method into the file beside the weights (postprocess.confidence_path), keeping
 the other methods' entries.
 
-The shipped fit (README "What is published"):
+The shipped fit (the manual, doc/published.md):
     python -m gcp_stereo_ros.tools.fit_confidence --dataset ../shared/data \
         --split config/cnn_split.yaml --methods census+gcp
 """
