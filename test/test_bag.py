@@ -14,17 +14,22 @@ import sys
 import threading
 import time
 
+import cv2
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
+from gcp_stereo_ros.evaluation.viz import disparity_picture
 from gcp_stereo_ros.ros.camera import stereo_model
 from gcp_stereo_ros.ros.graph import start_node, stop
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields, image_to_array
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from gcp_stereo_ros.tools import bag
+from gcp_stereo_ros.tools.bag import make as bag_make, run as bag_run
+from gcp_stereo_ros.tools.bag.files import (COMPRESSED, IMAGE, INFO, PROG, stamped_header,
+                                            STRING, TYPES)
 import numpy as np
 import pytest
-from rosbags.rosbag2 import Reader, Writer
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 import yaml
 
@@ -132,7 +137,7 @@ def test_motorcycle_camera_info_gives_depth(data_dir):
     for source, name in (('motorcycle', 'motorcycle'),
                          (data_dir, 'middeval3/MiddEval3/trainingQ/Motorcycle')):
         frame = load_frame(source, name)
-        infos = [bag.camera_info(bag._header(0, f'{side}_camera'), frame, side)
+        infos = [bag_make.camera_info(stamped_header(0, f'{side}_camera'), frame, side)
                  for side in ('left', 'right')]
         model = stereo_model(*infos, frame.left.shape, frame.max_disp)
         assert model.cx_offset == pytest.approx(-frame.doffs_px) and frame.doffs_px > 30
@@ -198,10 +203,14 @@ def test_run_gives_the_node_outputs_and_scores(data_dir, round_trip, expected,
         np.testing.assert_array_equal(image_to_array(conf_msg), result.cof_c)
         assert 0 < result.gcp.mean() < 1  # neither empty nor full: the comparison can tell
         rates = error_rates(result.disparity, frame.gt, frame.valid)
-        assert rows[name] == [f'{rates[k]:.2f}' for k in bag.RATE_KEYS]
+        assert rows[name] == [f'{rates[k]:.2f}' for k in bag_run.RATE_KEYS]
         stem = name.replace('/', '_')
         assert {p.name for p in (bag_out.parent / 'png').iterdir()} == {
             f'{stem}_disparity.png', f'{stem}_gcp_mask.png'}
+        picture = cv2.imread(str(bag_out.parent / 'png' / f'{stem}_disparity.png'))
+        np.testing.assert_array_equal(  # the map with its colour bar under it
+            picture, disparity_picture(result.disparity, PARAMS['max_disparity']))
+        assert picture.shape[0] > result.disparity.shape[0]
     assert 'mean' in rows
     for topic in inputs:  # the input is copied unchanged
         assert [t for t, _ in outputs[topic]] == [t for t, _ in inputs[topic]]
@@ -211,7 +220,7 @@ def test_run_gives_the_node_outputs_and_scores(data_dir, round_trip, expected,
 
 def write_bag(path, topics, storage='sqlite3'):
     """Write a bag of {topic: (msgtype, [(timestamp, message)])} with rosbags directly."""
-    with Writer(path, version=9, storage_plugin=bag.StoragePlugin[storage.upper()]) as writer:
+    with Writer(path, version=9, storage_plugin=StoragePlugin[storage.upper()]) as writer:
         for topic, (msgtype, msgs) in topics.items():
             conn = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
             for timestamp, msg in msgs:
@@ -219,15 +228,15 @@ def write_bag(path, topics, storage='sqlite3'):
 
 
 def string_msg(text):
-    return TYPESTORE.types[bag.STRING](data=text)
+    return TYPESTORE.types[STRING](data=text)
 
 
 def image_msg(stamp, encoding, size=(80, 60)):
     w, h = size
-    header = bag._header(stamp, 'left_camera')
-    return TYPESTORE.types[bag.IMAGE](header=header, height=h, width=w, encoding=encoding,
-                                      is_bigendian=0, step=w * 3,
-                                      data=np.zeros(w * h * 3, np.uint8))
+    header = stamped_header(stamp, 'left_camera')
+    return TYPESTORE.types[IMAGE](header=header, height=h, width=w, encoding=encoding,
+                                  is_bigendian=0, step=w * 3,
+                                  data=np.zeros(w * h * 3, np.uint8))
 
 
 def bad_bags(tmp_path):
@@ -246,15 +255,15 @@ def bad_bags(tmp_path):
     bags['text file named .db3'] = tmp_path / 'notes.db3'
     bags['text file named .db3'].write_text('not a bag\n')
     bags['no image topics'] = tmp_path / 'chatter'
-    write_bag(bags['no image topics'], {'/chatter': (bag.STRING, [(1, string_msg('hello'))])})
+    write_bag(bags['no image topics'], {'/chatter': (STRING, [(1, string_msg('hello'))])})
     bags['wrong image type'] = tmp_path / 'strings'
     write_bag(bags['wrong image type'], {
-        '/left/image_rect': (bag.STRING, [(1, string_msg('left'))]),
-        '/right/image_rect': (bag.STRING, [(1, string_msg('right'))])})
+        '/left/image_rect': (STRING, [(1, string_msg('left'))]),
+        '/right/image_rect': (STRING, [(1, string_msg('right'))])})
     bags['only bad pairs'] = tmp_path / 'only_bad'
     write_bag(bags['only bad pairs'], {
         f'/{side}/image_rect': (
-            bag.IMAGE, [(1, image_msg(1, 'yuv422')), (2, image_msg(2, 'yuv422'))])
+            IMAGE, [(1, image_msg(1, 'yuv422')), (2, image_msg(2, 'yuv422'))])
         for side in ('left', 'right')})
     return bags
 
@@ -290,14 +299,14 @@ def test_bad_input_bags_are_refused_without_output(tmp_path, params_file, capsys
 def crop_msg(frame, side, stamp, encoding='rgb8', rows=120):
     image = getattr(frame, side)[200:200 + rows, 300:460]
     fields = array_to_image_fields(image, 'rgb8')
-    return TYPESTORE.types[bag.IMAGE](header=bag._header(stamp, f'{side}_camera'),
-                                      **{**fields, 'encoding': encoding})
+    return TYPESTORE.types[IMAGE](header=stamped_header(stamp, f'{side}_camera'),
+                                  **{**fields, 'encoding': encoding})
 
 
 def test_run_skips_a_bad_pair_as_the_node_does(tmp_path, params_file, capsys):
     frame = load_frame('motorcycle', 'motorcycle')
     path = tmp_path / 'in'
-    write_bag(path, {f'/{side}/image_rect': (bag.IMAGE, [
+    write_bag(path, {f'/{side}/image_rect': (IMAGE, [
         (1, crop_msg(frame, side, 1)),
         (2, crop_msg(frame, side, 2, 'yuv422' if side == 'left' else 'rgb8')),
         (3, crop_msg(frame, side, 3, rows=120 if side == 'left' else 100)),
@@ -305,7 +314,7 @@ def test_run_skips_a_bad_pair_as_the_node_does(tmp_path, params_file, capsys):
     assert bag.main(['run', '--in', str(path), '--out', str(tmp_path / 'out'),
                      '--params', str(params_file)]) == 0
     out = capsys.readouterr()
-    assert [line for line in out.err.splitlines() if line.startswith(bag.PROG)] == [
+    assert [line for line in out.err.splitlines() if line.startswith(PROG)] == [
         'gcp-stereo-bag: skipping pair at stamp 2 ns: /left/image_rect: unsupported '
         "encoding 'yuv422'; expected one of mono8, mono16, 32FC1, rgb8, bgr8, rgba8, bgra8",
         'gcp-stereo-bag: skipping pair at stamp 3 ns: left image is 160x120 but right '
@@ -325,12 +334,12 @@ def test_run_skips_a_bad_pair_as_the_node_does(tmp_path, params_file, capsys):
 def slow_bag(path, pairs):
     """Write a bag of `pairs` Motorcycle frames: seconds of work for `run`."""
     frame = load_frame('motorcycle', 'motorcycle')
-    with Writer(path, version=9, storage_plugin=bag.StoragePlugin.MCAP) as writer:
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {name: writer.add_connection(f'/{name}', msgtype, typestore=TYPESTORE)
-                 for name, (msgtype, _) in bag.input_topics().items()}
+                 for name, (msgtype, _) in bag_make.input_topics().items()}
         for i in range(pairs):
             stamp = (i + 1) * 100_000_000
-            for name, msg in bag.frame_messages(frame, stamp).items():
+            for name, msg in bag_make.frame_messages(frame, stamp).items():
                 if name in conns:
                     writer.write(conns[name], stamp,
                                  TYPESTORE.serialize_cdr(msg, conns[name].msgtype))
@@ -368,8 +377,8 @@ def test_play_warns_of_messages_larger_than_the_shared_memory_segment(tmp_path):
     gray = load_frame('motorcycle', 'motorcycle').left.mean(axis=2).astype(np.uint8)
     big = np.tile(gray, (13, 9))[:6000, :6000]  # 36 MB as mono8
     fields = array_to_image_fields(big, 'mono8')
-    msg = TYPESTORE.types[bag.IMAGE](header=bag._header(1, 'left_camera'), **fields)
-    write_bag(tmp_path / 'big', {'/left/image_rect': (bag.IMAGE, [(1, msg)])})
+    msg = TYPESTORE.types[IMAGE](header=stamped_header(1, 'left_camera'), **fields)
+    write_bag(tmp_path / 'big', {'/left/image_rect': (IMAGE, [(1, msg)])})
     proc = cli('play', '--in', tmp_path / 'big', '--wait-subscribers', 0)
     assert proc.returncode == 0, proc.stderr
     assert ('gcp-stereo-bag play: warning: /left/image_rect has messages of 34.3 MiB, more than '
@@ -387,6 +396,24 @@ def test_existing_output_needs_force(tmp_path, capsys):
     assert bag.main(make + ['--force']) == 0
     assert not (out / 'keep').exists()
     assert read_bag(out)[0]['/gt/frame_name'][0][1].data == 'motorcycle'
+
+
+@pytest.mark.parametrize('values, reason', [
+    ({'max_disparity': 2000}, 'max_disparity must be in [1, 1024], got 2000'),
+    ({'census.window': 8}, 'census.window must be in [3, 11] in steps of 2 from 3, got 8'),
+    ({'sad.P1': 30.0}, 'sad: P2 (0.5) must be >= P1 (30.0)'),
+])
+def test_run_refuses_bad_parameters_naming_the_file(tmp_path, capsys, values, reason):
+    params = tmp_path / 'params.yaml'
+    params.write_text(yaml.safe_dump({'/**': {'ros__parameters': values}}))
+    out = tmp_path / 'out'
+    assert bag.main(['run', '--in', str(tmp_path / 'no_bag'), '--out', str(out),
+                     '--params', str(params)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == f'gcp-stereo-bag: error: {params}: {reason}' + (
+        ': a disparity jump may not cost less than a 1 px step' if 'P2' in reason else '') + (
+        f'; {out} not written')
+    assert not out.exists()
 
 
 # ---- play -------------------------------------------------------------------------------
@@ -526,7 +553,7 @@ def test_compressed_png_bag_gives_exactly_the_raw_bags_outputs(tmp_path, params_
                      '--out', str(bag_in)]) == 0
     msgs, conns = read_bag(bag_in)
     left, = (m for _, m in msgs['/left/image_rect/compressed'])
-    assert conns['/left/image_rect/compressed'].msgtype == bag.COMPRESSED
+    assert conns['/left/image_rect/compressed'].msgtype == COMPRESSED
     assert left.format == 'rgb8; png compressed bgr8'  # as image_transport writes it
     assert bag.main(['run', '--in', str(bag_in), '--out', str(bag_out),
                      '--params', str(params_file)]) == 0
@@ -541,23 +568,23 @@ def test_compressed_png_bag_gives_exactly_the_raw_bags_outputs(tmp_path, params_
 
 
 def info_msg(stamp, fields, frame_id):
-    return bag.TYPES.CameraInfo(
-        header=bag._header(stamp, frame_id), binning_x=0, binning_y=0,
-        roi=bag.TYPES.RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0,
-                                       do_rectify=False), **fields)
+    return TYPES.CameraInfo(
+        header=stamped_header(stamp, frame_id), binning_x=0, binning_y=0,
+        roi=TYPES.RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0,
+                                   do_rectify=False), **fields)
 
 
 def raw_recording(path, pair, names=('image_raw',)):
     """Write a bag as a camera driver records it: /cam/<side>/<name>, /cam/<side>/camera_info."""
     topics = {}
     for side in ('left', 'right'):  # camera_info first, as the node would have it
-        topics[f'/cam/{side}/camera_info'] = (bag.INFO, [
+        topics[f'/cam/{side}/camera_info'] = (INFO, [
             (s, info_msg(s, pair.info[side], f'cam_{side}_optical_frame')) for s in (1, 2)])
     for side in ('left', 'right'):
         for name in names:
             fields = array_to_image_fields(pair.raw[side], 'rgb8')
-            topics[f'/cam/{side}/{name}'] = (bag.IMAGE, [
-                (s, bag.TYPES.Image(header=bag._header(s, f'cam_{side}_optical_frame'), **fields))
+            topics[f'/cam/{side}/{name}'] = (IMAGE, [
+                (s, TYPES.Image(header=stamped_header(s, f'cam_{side}_optical_frame'), **fields))
                 for s in (1, 2)])
     write_bag(path, topics)
     return path
@@ -640,8 +667,8 @@ def test_run_pairs_each_image_with_the_camera_info_of_its_stamp(tmp_path, distor
     for side in ('left', 'right'):
         fields = array_to_image_fields(distorted_pair.raw[side], 'rgb8')
         frame_id = f'cam_{side}_optical_frame'
-        topics[f'/cam/{side}/image_raw'] = (bag.IMAGE, [
-            (s * 100, bag.TYPES.Image(header=bag._header(s, frame_id), **fields))
+        topics[f'/cam/{side}/image_raw'] = (IMAGE, [
+            (s * 100, TYPES.Image(header=stamped_header(s, frame_id), **fields))
             for s in (1, 2)])
         infos = []
         for s, baseline in ((1, 0.2), (2, 0.3)):
@@ -651,7 +678,7 @@ def test_run_pairs_each_image_with_the_camera_info_of_its_stamp(tmp_path, distor
                 p[3] = -distorted_pair.f * baseline
                 info['p'] = p
             infos.append((s * 100 + 10, info_msg(s, info, frame_id)))  # recorded after
-        topics[f'/cam/{side}/camera_info'] = (bag.INFO, infos)
+        topics[f'/cam/{side}/camera_info'] = (INFO, infos)
     write_bag(tmp_path / 'after', topics)
     params = tmp_path / 'params.yaml'
     params.write_text(yaml.safe_dump({'/**': {'ros__parameters': {

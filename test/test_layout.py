@@ -46,11 +46,38 @@ def test_the_checker_sees_every_import_form():
         'gcp_stereo_ros.tools', 'gcp_stereo_ros.tools.bag', 'rclpy.node']
 
 
+def module_name(path):
+    """Return the dotted name of the module at `path`; a package's ends in __init__."""
+    return '.'.join(path.relative_to(PACKAGE.parent).with_suffix('').parts)
+
+
 @pytest.mark.parametrize('sub', sorted(RULES))
 def test_import_rule(sub):
-    files = sorted((PACKAGE / sub).glob('*.py'))
+    files = sorted((PACKAGE / sub).rglob('*.py'))  # subpackages too
     assert len(files) >= 4, files
     for path in files:
-        module = f'gcp_stereo_ros.{sub}.{path.stem}'
-        bad = violations(imported(path.read_text(), module), RULES[sub])
+        bad = violations(imported(path.read_text(), module_name(path)), RULES[sub])
         assert not bad, f'{path.relative_to(PACKAGE.parent)} imports {bad}'
+
+
+def test_relative_imports_of_a_subpackage_resolve_to_their_package():
+    run = module_name(PACKAGE / 'tools' / 'bag' / 'run.py')
+    assert run == 'gcp_stereo_ros.tools.bag.run'
+    names = imported('from ...ros import messages\nfrom .files import PROG\n', run)
+    assert {'gcp_stereo_ros.ros.messages', 'gcp_stereo_ros.tools.bag.files.PROG'} <= names
+    init = module_name(PACKAGE / 'tools' / 'bag' / '__init__.py')
+    assert 'gcp_stereo_ros.tools.bag.make' in imported('from . import make\n', init)
+
+
+# Modules over the limit, each waiting for its split: listed so that the rule holds for the
+# rest, and checked to be still over it (remove the entry once it is not).
+OVER_LIMIT = {'tools/train.py'}
+MAX_LINES = 450
+
+
+def test_no_module_is_over_the_line_limit():
+    sizes = {str(path.relative_to(PACKAGE)): len(path.read_text().splitlines())
+             for path in PACKAGE.rglob('*.py')}
+    assert len(sizes) > 40 and 'tools/bag/run.py' in sizes
+    over = {name for name, lines in sizes.items() if lines > MAX_LINES}
+    assert over == OVER_LIMIT, {name: sizes[name] for name in over ^ OVER_LIMIT}

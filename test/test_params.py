@@ -78,7 +78,7 @@ def test_both_costs_are_checked_whichever_is_chosen():
 @pytest.mark.parametrize('values, reason', [
     ({'bf16': 1}, '^bf16 takes a str value, got 1$'),  # 1 == True, still refused
     ({'bf16': 'maybe'}, "^bf16 must be one of 'auto', 'true', 'false', got 'maybe'$"),
-    ({'max_disparity': 0}, r'^max_disp must be an integer in \[1, 1024\], got 0$'),
+    ({'max_disparity': 0}, r'^max_disparity must be in \[1, 1024\], got 0$'),  # its ROS name
 ])
 def test_values_of_neither_cost_are_not_said_of_one(values, reason):
     with pytest.raises(ValueError, match=reason):

@@ -315,7 +315,7 @@ def test_a_run_stops_soon_after_its_cancel_flag_is_set(data_dir):
 def test_device_is_checked_without_gcps_too():
     for device in ('cudafoo', 'cuda:x', 'CPU'):
         with pytest.raises(ValueError, match='device'):
-            StereoConfig(use_gcp=False, device=device).validate()
+            StereoConfig(use_gcp=False, device=device)
     if not torch_cuda():
         with pytest.raises(ValueError, match="device 'cuda:1': .*no usable CUDA GPU"):
             StereoPipeline(StereoConfig(use_gcp=False, device='cuda:1'))

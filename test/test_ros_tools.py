@@ -24,6 +24,7 @@ from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import image_to_array
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from gcp_stereo_ros.tools import bag
+from gcp_stereo_ros.tools.bag import files as bag_files
 import numpy as np
 import pytest
 from rcl_interfaces.msg import ParameterType
@@ -167,8 +168,8 @@ def test_bag_run_takes_a_dump_file(graph, tmp_path):
     frame = load_frame('motorcycle', 'motorcycle')
     pipeline = StereoPipeline(config_from_params(g.node.params.values))
     want = pipeline(frame.left, frame.right).disparity
-    with bag.open_bag(bag_out) as reader:
-        disp, = (bag.deserialize(raw, c, t, bag_out) for c, t, raw in reader.messages()
+    with bag_files.open_bag(bag_out) as reader:
+        disp, = (bag_files.deserialize(raw, c, t, bag_out) for c, t, raw in reader.messages()
                  if c.topic == '/disparity')
     low = np.float32(frame.doffs_px)  # published: d - (cx_left - cx_right), calibrated bag
     assert disp.min_disparity == low and disp.f > 0

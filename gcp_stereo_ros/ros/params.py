@@ -17,8 +17,8 @@ import numpy as np
 import yaml
 
 from .sync import PairSync
-from ..stereo.config import COST_DEFAULTS, StereoConfig
-from ..stereo.cost import COSTS
+from ..stereo.config import CHOICES, COST_DEFAULTS, range_text, RANGES, StereoConfig
+from ..stereo.cost import COSTS, WINDOWS
 from ..stereo.memory import MIB
 
 NODE_NAME = 'gcp_stereo_node'
@@ -28,6 +28,14 @@ RCLPY_PARAMS = ('use_sim_time', 'start_type_description_service')
 
 @dataclass(frozen=True)
 class Param:
+    """
+    One node parameter: its name, default, description and StereoConfig field.
+
+    A field's parameter takes its range or choices from the config (config.RANGES,
+    config.CHOICES, cost.WINDOWS), so the node's descriptors and the config's checks are
+    one: only node-only parameters give their own.
+    """
+
     name: str
     default: object
     description: str
@@ -39,24 +47,33 @@ class Param:
     # {ROS value: StereoConfig value} where they differ (None: the same)
     to_field: dict | None = None
 
+    def __post_init__(self):
+        """Take the field's range or choices from the config, unless given (bf16's)."""
+        if self.field == 'window':
+            object.__setattr__(self, 'range', (*WINDOWS[self.cost], 2))
+        elif self.field in RANGES:
+            low, high = RANGES[self.field]
+            object.__setattr__(self, 'range', (low, high, 1 if isinstance(low, int) else 0.0))
+        elif self.field in CHOICES and self.choices is None:
+            object.__setattr__(self, 'choices', CHOICES[self.field])
+
 
 def _cost_params(cost):
     d = COST_DEFAULTS[cost]
-    top = 11 if cost == 'census' else 31  # census bits fit two uint64 words
     return (
         Param(f'{cost}.window', _D.window, f'{cost}: matching window size in pixels (odd)',
-              'window', (3, top, 2), cost=cost),
+              'window', cost=cost),
         Param(f'{cost}.theta', d['theta'], f'{cost}: GCP threshold on the calibrated CNN '
               "confidence: the probability that the pixel's CNN disparity is within 1 px of "
-              'the truth', 'theta', (0.0, 1.0, 0.0), cost=cost),
+              'the truth', 'theta', cost=cost),
         Param(f'{cost}.P1', d['p1'], f'{cost}: SGM penalty for a 1 px disparity change',
-              'p1', (0.0, 10000.0, 0.0), cost=cost),
+              'p1', cost=cost),
         Param(f'{cost}.P2', d['p2'], f'{cost}: SGM penalty for larger disparity jumps (>= P1)',
-              'p2', (0.0, 10000.0, 0.0), cost=cost),
+              'p2', cost=cost),
         Param(f'{cost}.c_hi', d['c_hi'], f'{cost}: cost given to every disparity of a non-GCP '
-              'pixel', 'c_hi', (0.0, 10000.0, 0.0), cost=cost),
+              'pixel', 'c_hi', cost=cost),
         Param(f'{cost}.c_low', d['c_low'], f'{cost}: cost given to a GCP at its CNN disparity '
-              '(<= c_hi)', 'c_low', (0.0, 10000.0, 0.0), cost=cost),
+              '(<= c_hi)', 'c_low', cost=cost),
     )
 
 
@@ -64,12 +81,12 @@ _D = StereoConfig()
 PARAMS = (
     Param('cost', _D.cost,
           "matching cost: 'census' or 'sad'; each has its own window, theta, P1, P2, c_hi, "
-          'c_low (census.*, sad.*), which a switch leaves as they are', 'cost', choices=COSTS),
+          'c_low (census.*, sad.*), which a switch leaves as they are', 'cost'),
     Param('max_disparity', _D.max_disp, 'number of disparities searched: 0 .. max_disparity - 1',
-          'max_disp', (1, 1024, 1)),
+          'max_disp'),
     *_cost_params('census'),
     *_cost_params('sad'),
-    Param('paths', _D.paths, 'SGM path directions: 4, 8 or 16', 'paths', choices=(4, 8, 16)),
+    Param('paths', _D.paths, 'SGM path directions: 4, 8 or 16', 'paths'),
     Param('use_gcp', _D.use_gcp, 'refine the cost volume with CNN ground control points',
           'use_gcp'),
     Param('gcp_lr_check', _D.gcp_lr_check,
@@ -98,27 +115,25 @@ PARAMS = (
     Param('uniqueness_ratio', _D.uniqueness_ratio,
           'invalidate where a disparity more than 1 px from the winner has a summed SGM cost '
           "less than this many percent above the winner's (OpenCV's uniquenessRatio; 0 = off)",
-          'uniqueness_ratio', (0.0, 99.0, 0.0)),
+          'uniqueness_ratio'),
     Param('speckle_size', _D.speckle_size,
           'invalidate regions of at most this many pixels, neighbours within speckle_range '
-          '(as stereo_image_proc; 0 = off)', 'speckle_size', (0, 1000000, 1)),
+          '(as stereo_image_proc; 0 = off)', 'speckle_size'),
     Param('speckle_range', _D.speckle_range, 'largest disparity difference in px of two '
-          'neighbours of one speckle region', 'speckle_range', (0, 1024, 1)),
+          'neighbours of one speckle region', 'speckle_range'),
     Param('min_depth', _D.min_depth, 'invalidate depths below this many metres (with '
-          'camera_info; 0 = no limit)', 'min_depth', (0.0, 1e6, 0.0)),
+          'camera_info; 0 = no limit)', 'min_depth'),
     Param('max_depth', _D.max_depth, 'invalidate depths beyond this many metres (with '
-          'camera_info; 0 = no limit)', 'max_depth', (0.0, 1e6, 0.0)),
+          'camera_info; 0 = no limit)', 'max_depth'),
     Param('min_confidence', _D.min_confidence,
           'invalidate where disparity_confidence, the calibrated probability that the '
-          'disparity is within 3 px of the truth, is below this (0 = off)', 'min_confidence',
-          (0.0, 1.0, 0.0)),
+          'disparity is within 3 px of the truth, is below this (0 = off)', 'min_confidence'),
     Param('downsample', _D.downsample,
           'match at 1/N resolution (1, 2 or 4): both images area-binned, max_disparity / N; '
-          'outputs at full size, disparities in full-size pixels', 'downsample',
-          choices=(1, 2, 4)),
+          'outputs at full size, disparities in full-size pixels', 'downsample'),
     Param('memory_limit_mb', _D.memory_limit_mb,
           'memory budget in MiB of processing one pair: a pair that would need more is '
-          'refused, saying what to lower', 'memory_limit_mb', (64, 1 << 20, 1)),
+          'refused, saying what to lower', 'memory_limit_mb'),
     Param('image_transport', 'raw',
           "input images: 'raw' (sensor_msgs/Image) or 'compressed' (sensor_msgs/"
           'CompressedImage, jpeg or png, on <image topic>/compressed)',
@@ -180,7 +195,8 @@ def coerce(name, value):
 
     YAML `P1: 4`, `-p census.P1:=300` and `ros2 param set ... census.P1 300` give integers;
     `bf16: false` gives a boolean, taken as the string 'false'.
-    Raises ValueError for a value of the wrong type or not among the parameter's choices.
+    Raises ValueError for a value of the wrong type, not among the parameter's choices or
+    outside its range (what the node's descriptor allows).
     """
     p = BY_NAME[name]
     if isinstance(p.default, float) and type(value) is int:
@@ -192,6 +208,11 @@ def coerce(name, value):
     if p.choices and value not in p.choices:
         raise ValueError(f'{name} must be one of {", ".join(map(repr, p.choices))}, '
                          f'got {value!r}')
+    if p.range is not None:
+        low, high, step = p.range
+        if not (low <= value <= high and (step <= 1 or (value - low) % step == 0)):
+            steps = f' in steps of {step} from {low}' if step > 1 else ''
+            raise ValueError(f'{name} must be in {range_text(low, high)}{steps}, got {value!r}')
     return value
 
 
@@ -212,7 +233,7 @@ def config_from_params(values):
     values = {n: _field_value(n, coerce(n, v)) for n, v in values.items()}
     # The values of neither cost first, so that their errors are not said of a cost.
     StereoConfig(**{BY_NAME[n].field: v for n, v in values.items()
-                    if BY_NAME[n].field and n != 'cost' and BY_NAME[n].cost is None}).validate()
+                    if BY_NAME[n].field and n != 'cost' and BY_NAME[n].cost is None})
     configs = {}
     for cost in COSTS:
         fields = {BY_NAME[n].field: v for n, v in values.items()

@@ -7,7 +7,6 @@ cost's values from a preset ('default', or 'paper': the paper's values, nothing 
 """
 import dataclasses
 from dataclasses import dataclass
-import math
 import re
 
 import numpy as np
@@ -37,10 +36,131 @@ UNFILTERED = {'valid_window': False, 'lr_check': False, 'uniqueness_ratio': 0.0,
 PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False} for cost, values in PAPER.items()}
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
 DOWNSAMPLE = (1, 2, 4)
+BF16 = (True, False, 'auto')
+MAX_COST_PARAM = 10000.0  # P1, P2, c_hi, c_low: far above any useful value of either cost
+# The valid values of each number field, both ends included: the one source of truth,
+# which the node's parameter descriptors are made from (ros/params.py). The window's
+# range depends on the cost (cost.WINDOWS).
+RANGES = {
+    'max_disp': (1, 1024),
+    'p1': (0.0, MAX_COST_PARAM),
+    'p2': (0.0, MAX_COST_PARAM),
+    'theta': (0.0, 1.0),
+    'c_hi': (0.0, MAX_COST_PARAM),
+    'c_low': (0.0, MAX_COST_PARAM),
+    'uniqueness_ratio': (0.0, 99.0),
+    'speckle_size': (0, 1_000_000),
+    'speckle_range': (0, 1024),
+    'min_depth': (0.0, 1e6),
+    'max_depth': (0.0, 1e6),
+    'min_confidence': (0.0, 1.0),
+    'memory_limit_mb': (64, 1 << 20),
+}
+# The only values of these fields.
+CHOICES = {'cost': cost_mod.COSTS, 'paths': PATHS, 'downsample': DOWNSAMPLE, 'bf16': BF16}
+FLAGS = ('use_gcp', 'gcp_lr_check', 'subpixel', 'median', 'valid_window', 'lr_check')
+DEVICE = re.compile(r'cpu|cuda(:\d+)?')
+
+
+def number_text(value):
+    """Return `value` as the range messages and the docs write it: 1e6 as 1000000."""
+    return str(int(value)) if float(value).is_integer() else f'{value:g}'
+
+
+def range_text(low, high):
+    """Return the inclusive range [low, high] as text, e.g. '[0, 10000]'."""
+    return f'[{number_text(low)}, {number_text(high)}]'
 
 
 @dataclass(frozen=True)
 class StereoConfig:
+    """
+    Every setting of the stereo pipeline, checked when the config is made.
+
+    Make one with keywords (``StereoConfig(max_disp=64, paths=8)``), from a preset
+    (`for_cost`), or from another (`replace`, or ``dataclasses.replace``). A value out of
+    its range raises ValueError naming every bad field, its valid range and the value
+    given. The node's parameters (``ros/params.py``) map onto these fields and take their
+    ranges from here. Costs (``p1``, ``p2``, ``c_hi``, ``c_low``) are in the units of the
+    matching cost: differing bits for Census (0 .. window**2 - 1), image standard deviations
+    for SAD (0 .. 3.2); disparities are in pixels of the input images.
+
+    Attributes
+    ----------
+    cost : str
+        Matching cost: ``'census'`` (Hamming distance of Census bit strings) or ``'sad'``
+        (mean absolute difference of standardized intensities).
+    window : int
+        Matching window side in pixels, odd: census in [3, 11] (its bits fill two 64-bit
+        words), sad in [3, 31].
+    max_disp : int
+        Disparities searched, 0 .. max_disp - 1 px of the input images; in [1, 1024].
+    p1 : float
+        SGM penalty in cost units for a 1 px disparity change between neighbours; in
+        [0, 10000].
+    p2 : float
+        SGM penalty in cost units for a larger disparity jump; in [0, 10000], and >= p1.
+    paths : int
+        SGM path directions: 4, 8 or 16.
+    use_gcp : bool
+        Refine the cost volume with the CNN's ground control points (GCPs).
+    theta : float
+        GCP threshold on the calibrated CNN confidence, the probability that the pixel's
+        CNN disparity is within 1 px of the truth; in [0, 1].
+    c_hi : float
+        Cost in cost units given to every disparity of a pixel that is not a GCP (where
+        use_gcp); in [0, 10000].
+    c_low : float
+        Cost in cost units given to a GCP at its CNN disparity; in [0, 10000], and <= c_hi.
+    gcp_lr_check : bool
+        GCPs only where the right view's CNN disparity agrees within 1 px (not in the
+        paper).
+    weights : str
+        Path of the CNN weights file; ``''`` is the weights shipped with the package.
+    device : str
+        ``'cpu'``, or ``'cuda'`` / ``'cuda:N'`` to run the whole pipeline on that GPU.
+    bf16 : bool or str
+        bfloat16 CNN descriptors: True, False, or ``'auto'`` (on where native: CPUs with
+        avx512_bf16 or AMX, CUDA). 3-4x faster CNN, error rates within 0.061 point.
+    subpixel : bool
+        Parabola fit of the summed costs around the winner for sub-pixel disparities.
+    median : bool
+        3x3 median filter on the disparity.
+    valid_window : bool
+        Invalidate where the search was cut short: within window // 2 px of the image's
+        edge, and left of x = max_disp - 1 where the winner is at the end of its range.
+    lr_check : bool
+        Invalidate where the right view's winner is more than 1 px from the disparity.
+    uniqueness_ratio : float
+        Percent, OpenCV's uniquenessRatio: invalidate where a disparity more than 1 px
+        from the winner has a summed SGM cost less than this many percent above the
+        winner's; in [0, 99], 0 = off.
+    speckle_size : int
+        Pixels: invalidate connected regions of at most this many pixels (neighbours
+        within speckle_range), as stereo_image_proc; in [0, 1000000], 0 = off.
+    speckle_range : int
+        Pixels of disparity: the largest difference of two neighbours of one speckle
+        region; in [0, 1024].
+    min_depth : float
+        Metres: invalidate depths below this (applied only with a camera model); in
+        [0, 1000000], 0 = no limit.
+    max_depth : float
+        Metres: invalidate depths beyond this (with a camera model); in [0, 1000000],
+        0 = no limit, else above min_depth.
+    min_confidence : float
+        Invalidate where the calibrated probability that the disparity is within 3 px of
+        the truth (`StereoResult.confidence`) is below this; in [0, 1], 0 = off.
+    downsample : int
+        Match at 1/downsample of the resolution (1, 2 or 4): both images area-binned,
+        max_disp / downsample disparities; outputs at full size, disparities in
+        full-size pixels.
+    memory_limit_mb : int
+        MiB: a pair whose processing would need more memory is refused with ValueError
+        (see `memory.memory_bytes`); in [64, 1048576]. The default 3 GiB keeps the node,
+        with its own 0.4-0.6 GB, under half of an 8 GB computer.
+
+    """
+
     cost: str = 'census'
     window: int = 9
     max_disp: int = 128
@@ -51,99 +171,118 @@ class StereoConfig:
     theta: float = COST_DEFAULTS['census']['theta']
     c_hi: float = COST_DEFAULTS['census']['c_hi']
     c_low: float = COST_DEFAULTS['census']['c_low']
-    # GCPs only where the right view's CNN disparity agrees (not in the paper).
     gcp_lr_check: bool = COST_DEFAULTS['census']['gcp_lr_check']
-    weights: str = ''  # '' = the weights shipped with the package
+    weights: str = ''
     device: str = 'cpu'
-    # bfloat16 CNN descriptors: True, False or 'auto' (where native: CPUs with avx512_bf16
-    # or AMX, CUDA; see cnn.bf16_native). 3-4x faster CNN; on the validation frames the
-    # defaults' error rates moved by at most 0.061 point (README, "Speed").
+    # 'auto': see cnn.bf16_native; on the validation frames the defaults' error rates moved
+    # by at most 0.061 point (README, "Speed").
     bf16: bool | str = 'auto'
     subpixel: bool = True
     median: bool = False
     # Invalidation (stereo.postprocess; README "What is published"), chosen on the validation
-    # frames; 0 / False turns each off. The left-right check is off: on the validation frames
-    # 89 % of the pixels it rejects are right; its agreement is a confidence feature instead.
+    # frames. The left-right check is off: on the validation frames 89 % of the pixels it
+    # rejects are right; its agreement is a confidence feature instead.
     valid_window: bool = True
     lr_check: bool = False
-    uniqueness_ratio: float = 1.0  # percent, OpenCV's uniquenessRatio
-    speckle_size: int = 100  # pixels, stereo_image_proc's speckle_size
-    speckle_range: int = 4  # px, stereo_image_proc's speckle_range
-    min_depth: float = 0.3  # metres, with a camera model; 0 = no limit
+    uniqueness_ratio: float = 1.0
+    speckle_size: int = 100
+    speckle_range: int = 4
+    min_depth: float = 0.3
     max_depth: float = 0.0
-    min_confidence: float = 0.88  # on the calibrated confidence of the disparity
-    # Match at 1/downsample of the resolution (area-binned images, max_disp / downsample);
-    # the outputs come back at full size, disparities in full-size pixels.
+    min_confidence: float = 0.88
     downsample: int = 1
-    # Pairs whose pipeline would need more memory are refused (see `memory_bytes`). 3 GiB:
-    # with the process's own 0.4-0.6 GB the node stays under half of an 8 GB computer.
     memory_limit_mb: int = 3072
+
+    def __post_init__(self):
+        """Raise ValueError naming every field whose value is invalid (see `_problems`)."""
+        found = self._problems()
+        if found:
+            raise ValueError('; '.join(found))
 
     @classmethod
     def for_cost(cls, cost, preset='default', **overrides):
-        """Return a config with the `preset`'s values for `cost`, then `overrides` applied."""
+        """
+        Return the config with the `preset`'s values for `cost`, then `overrides` applied.
+
+        `preset` is ``'default'`` (cross-validated on the validation frames) or
+        ``'paper'`` (Zhong et al.'s values, nothing invalidated, no sub-pixel fit);
+        `overrides` are fields. Raises ValueError for an unknown preset or cost, or an
+        invalid value.
+        """
         if preset not in PRESETS:
             raise ValueError(f'preset must be one of {tuple(PRESETS)}, got {preset!r}')
         if cost not in PRESETS[preset]:
             raise ValueError(f'cost must be one of {tuple(COST_DEFAULTS)}, got {cost!r}')
-        return cls(**{'cost': cost, **PRESETS[preset][cost], **overrides}).validate()
+        return cls(**{'cost': cost, **PRESETS[preset][cost], **overrides})
 
     def replace(self, **changes):
-        return dataclasses.replace(self, **changes).validate()
+        """Return a copy with the fields `changes` changed (``dataclasses.replace``)."""
+        return dataclasses.replace(self, **changes)
 
-    def validate(self):
-        """Return self, or raise ValueError saying which value is out of range and why."""
-        cost_mod.check_window(self.cost, self.window)
-        if not (isinstance(self.max_disp, (int, np.integer)) and 1 <= self.max_disp <= 1024):
-            raise ValueError(f'max_disp must be an integer in [1, 1024], '
-                             f'got {self.max_disp!r}')
-        for name in ('p1', 'p2', 'theta', 'c_hi', 'c_low'):
+    def _problems(self):
+        """
+        Return a sentence for each invalid value, [] if all are valid.
+
+        Each names the field, what it must be (its range from RANGES, its choices) and the
+        value given; relations between fields (p1 <= p2, c_low <= c_hi, min_depth <
+        max_depth) are checked once both values are valid on their own.
+        """
+        found = []
+        for name, choices in CHOICES.items():
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
-        if self.p2 < self.p1:
-            raise ValueError(f'P2 ({self.p2}) must be >= P1 ({self.p1}): a disparity jump may not '
-                             'cost less than a 1 px step')
-        if self.paths not in PATHS:
-            raise ValueError(f'paths must be one of {PATHS}, got {self.paths!r}')
-        if self.theta > 1:
-            raise ValueError('theta must be in [0, 1] (the CNN confidence range), '
-                             f'got {self.theta}')
-        if self.c_low > self.c_hi:
-            raise ValueError(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
-        for name in ('uniqueness_ratio', 'speckle_range', 'min_depth', 'max_depth',
-                     'min_confidence'):
+            if not any(_same(value, c) for c in choices):
+                found.append(f'{name} must be one of {", ".join(map(repr, choices))}, '
+                             f'got {value!r}')
+        if self.cost in cost_mod.COSTS:
+            try:
+                cost_mod.check_window(self.cost, self.window)
+            except ValueError as err:
+                found.append(str(err))
+        for name, (low, high) in RANGES.items():
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool)
-                    and math.isfinite(value) and value >= 0):
-                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
-        if self.uniqueness_ratio >= 100:
-            raise ValueError('uniqueness_ratio must be below 100 (percent), '
-                             f'got {self.uniqueness_ratio}')
-        if not (isinstance(self.speckle_size, (int, np.integer))
-                and not isinstance(self.speckle_size, bool) and self.speckle_size >= 0):
-            raise ValueError(f'speckle_size must be an integer >= 0, got {self.speckle_size!r}')
-        if self.max_depth and self.max_depth <= self.min_depth:
-            raise ValueError(f'max_depth ({self.max_depth}) must be above min_depth '
-                             f'({self.min_depth}), or 0 for no limit')
-        if self.min_confidence > 1:
-            raise ValueError('min_confidence must be in [0, 1] (a probability), '
-                             f'got {self.min_confidence}')
-        if not (isinstance(self.bf16, bool) or self.bf16 == 'auto'):  # 1 == True, but no
-            raise ValueError(f"bf16 must be true, false or 'auto', got {self.bf16!r}")
-        if not (self.device == 'cpu' or re.fullmatch(r'cuda(:\d+)?', self.device)):
-            raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
-        if not (isinstance(self.downsample, (int, np.integer)) and not isinstance(
-                self.downsample, bool) and self.downsample in DOWNSAMPLE):
-            raise ValueError(f'downsample must be one of {DOWNSAMPLE}, got {self.downsample!r}')
-        if not (isinstance(self.memory_limit_mb, (int, np.integer))
-                and not isinstance(self.memory_limit_mb, bool)
-                and 64 <= self.memory_limit_mb <= 1 << 20):
-            raise ValueError('memory_limit_mb must be an integer in [64, 1048576], '
-                             f'got {self.memory_limit_mb!r}')
-        return self
+            kind = 'an integer' if isinstance(low, int) else 'a number'
+            if not (_is_number(value, isinstance(low, int)) and low <= value <= high):
+                found.append(f'{name} must be {kind} in {range_text(low, high)}, got {value!r}')
+        for name in FLAGS:
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                found.append(f'{name} must be true or false, got {getattr(self, name)!r}')
+        if not isinstance(self.weights, str):
+            found.append(f"weights must be a file path ('' = the shipped weights), "
+                         f'got {self.weights!r}')
+        if not (isinstance(self.device, str) and DEVICE.fullmatch(self.device)):
+            found.append(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
+        bad = {text.split(' ', 1)[0] for text in found}
+        if not {'p1', 'p2'} & bad and self.p2 < self.p1:
+            found.append(f'P2 ({self.p2}) must be >= P1 ({self.p1}): a disparity jump may not '
+                         'cost less than a 1 px step')
+        if not {'c_hi', 'c_low'} & bad and self.c_low > self.c_hi:
+            found.append(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
+        if (not {'min_depth', 'max_depth'} & bad and self.max_depth
+                and self.max_depth <= self.min_depth):
+            found.append(f'max_depth ({self.max_depth}) must be above min_depth '
+                         f'({self.min_depth}), or 0 for no limit')
+        return found
 
     @property
     def matched_disp(self):
         """Return the disparities searched at the matching resolution: max_disp / downsample."""
         return -(-self.max_disp // self.downsample)
+
+
+def _is_number(value, integer):
+    """Whether `value` is a finite number (an integer if `integer`); booleans are not."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, (int, np.integer)):
+        return True
+    return not integer and isinstance(value, (float, np.floating)) and bool(np.isfinite(value))
+
+
+def _same(value, choice):
+    """Whether `value` is `choice`, and of its kind: True is not 1, 2.0 is not 2."""
+    flag = isinstance(value, (bool, np.bool_))
+    if flag or isinstance(choice, bool):
+        return flag and isinstance(choice, bool) and bool(value) == choice
+    if isinstance(choice, int):
+        return isinstance(value, (int, np.integer)) and value == choice
+    return isinstance(value, str) and value == choice

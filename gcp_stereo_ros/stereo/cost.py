@@ -26,6 +26,8 @@ from .cancel import flag_array
 from .images import gray_pair, standardize
 
 COSTS = ('census', 'sad')
+# Matching window sides (odd, both ends included): Census bits must fit two uint64 words.
+WINDOWS = {'census': (3, 11), 'sad': (3, 31)}
 SAD_MAX = 3.2
 UINT16_MAX = 65535
 
@@ -48,11 +50,14 @@ def check_max_disp(max_disp, width):
 
 
 def check_window(cost, window):
+    """Raise ValueError unless `window` is an odd side in the range of `cost` (WINDOWS)."""
     if cost not in COSTS:
         raise ValueError(f'cost must be one of {COSTS}, got {cost!r}')
-    top = 11 if cost == 'census' else 31  # census bits must fit two uint64 words
-    if not (isinstance(window, (int, np.integer)) and window % 2 == 1 and 3 <= window <= top):
-        raise ValueError(f'{cost} window must be an odd integer in [3, {top}], got {window!r}')
+    low, high = WINDOWS[cost]
+    if not (isinstance(window, (int, np.integer)) and not isinstance(window, bool)
+            and window % 2 == 1 and low <= window <= high):
+        raise ValueError(f'{cost} window must be an odd integer in [{low}, {high}], '
+                         f'got {window!r}')
 
 
 @njit(inline='always')

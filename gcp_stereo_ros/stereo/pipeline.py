@@ -22,17 +22,63 @@ from .sgm import aggregate, winners
 
 @dataclass
 class StereoResult:
-    disparity: np.ndarray  # float32 (H, W), NaN where invalid
-    gcp: np.ndarray | None  # bool (H, W) GCP mask, None without GCPs
-    cof_c: np.ndarray | None  # float32 (H, W) CNN confidence max_d Vol
-    cof_d: np.ndarray | None  # int32 (H, W) CNN disparity argmax_d Vol
-    cof_dr: np.ndarray | None  # int32 (H, W) right view's CNN disparity (see cnn.confidence)
-    seconds: dict  # wall time per stage
-    # float32 (H, W) P(disparity within 3 px of the truth) (postprocess.Confidence), 0 where
-    # not published; None where no fit exists for the method and weights
+    """
+    What `StereoPipeline` returns for one pair: the disparity and what it was made from.
+
+    Every array is (H, W), the size of the input images (with ``downsample`` > 1 blown
+    back up to it), row y, column x of the left image. Disparities are in pixels of the
+    input images: the left pixel (x, y) matches the right pixel (x - d, y). Invalid
+    disparities are NaN (not 0, not negative).
+
+    Attributes
+    ----------
+    disparity : numpy.ndarray
+        float32 (H, W), px, in [0, max_disp - 1]; sub-pixel with ``subpixel``; NaN where
+        the invalidation (``stereo.postprocess``: valid_window, uniqueness_ratio, speckles,
+        depth limits, min_confidence, lr_check) rejected the winner.
+    gcp : numpy.ndarray or None
+        bool (H, W): the ground control points (pixels whose CNN disparity steered SGM);
+        None without ``use_gcp``.
+    cof_c : numpy.ndarray or None
+        float32 (H, W) in [0, 1]: the calibrated CNN confidence of its best disparity (the
+        probability that ``cof_d`` is within 1 px of the truth, compared with theta); None
+        without ``use_gcp``.
+    cof_d : numpy.ndarray or None
+        int32 (H, W), px: the CNN's best disparity; None without ``use_gcp``.
+    cof_dr : numpy.ndarray or None
+        int32 (H, W), px: the right view's CNN disparity at each right pixel (for
+        ``gcp_lr_check``); None without ``use_gcp``. Pass ``(cof_c, cof_d, cof_dr)`` as
+        `StereoPipeline.__call__`'s `confidence` to skip the CNN on the same pair.
+    seconds : dict
+        Wall time in seconds per stage, {stage name: float}, in the order run. Stages
+        (each only when it ran): 'downsample', 'upload' (GPU), 'cnn' and 'confidence'
+        (the CNN's convolutions and correlation), 'cost', 'refine' (GCPs), 'sgm', 'wta',
+        'download' (GPU), 'upsample', 'disparity_confidence', 'invalidate'.
+    confidence : numpy.ndarray or None
+        float32 (H, W) in [0, 1]: the calibrated probability that the published disparity
+        is within 3 px of the truth (``postprocess.Confidence``), 0 where the disparity is
+        NaN; None where no fit ships for the method and weights (the fit is beside the
+        weights, ``<weights>.confidence.json``).
+    consistent : numpy.ndarray
+        bool (H, W): the left-right agreement, False where the right view's winner at
+        x - d is more than 1 px from d or x - d < 0 (``sgm.winners``); computed whether
+        or not ``lr_check`` invalidates by it.
+    margin : numpy.ndarray
+        float32 (H, W) in [0, 1]: the SGM cost margin 1 - S(winner) / S(rival), the
+        rival the least summed cost more than 1 px from the winner; 1 where there is none
+        (``postprocess.margin``).
+
+    """
+
+    disparity: np.ndarray
+    gcp: np.ndarray | None
+    cof_c: np.ndarray | None
+    cof_d: np.ndarray | None
+    cof_dr: np.ndarray | None
+    seconds: dict
     confidence: np.ndarray | None = None
-    consistent: np.ndarray | None = None  # bool (H, W) left-right agreement (sgm.winners)
-    margin: np.ndarray | None = None  # float32 (H, W) SGM cost margin (postprocess.margin)
+    consistent: np.ndarray | None = None
+    margin: np.ndarray | None = None
 
 
 class StereoPipeline:
@@ -47,7 +93,7 @@ class StereoPipeline:
     """
 
     def __init__(self, config=None, net=None, _workspace=None):
-        self.config = (config or StereoConfig()).validate()
+        self.config = config or StereoConfig()  # checked when it was made
         if self.config.device != 'cpu':
             from .gpu import check_device
             check_device(self.config.device)
@@ -96,14 +142,41 @@ class StereoPipeline:
 
     def __call__(self, left, right, confidence=None, cancel=None, camera=None):
         """
-        Return the StereoResult of a pair.
+        Return the `StereoResult` of one rectified pair.
 
-        `confidence`: (cof_c, cof_d, cof_dr) of an earlier run on the same pair, max_disp and
-        downsample, as its StereoResult holds them, to sweep GCP/SGM parameters without
-        running the CNN again. `cancel`: a CancelFlag that another thread may set to stop the
-        run (raises Cancelled within a row of a CPU kernel or a CNN layer). `camera`: (f * T
-        in px m, cx_left - cx_right in px) for min_depth / max_depth (None: not applied).
-        Raises ValueError for bad input or a pair that needs more than memory_limit_mb.
+        Parameters
+        ----------
+        left, right : numpy.ndarray
+            The rectified left and right images, of one size (H, W): gray (H, W) or
+            (H, W, 1), RGB (H, W, 3) or RGBA (H, W, 4, alpha ignored), in RGB channel order
+            (convert OpenCV's BGR first); integer (uint8, uint16) or float (any scale:
+            every cost and the CNN standardize or compare within an image), finite values
+            only. Colour is turned into gray (BT.601 luma). The two may differ in dtype and
+            in gray or colour. W must be at least max_disp / downsample.
+        confidence : tuple of numpy.ndarray, optional
+            (cof_c, cof_d, cof_dr) of an earlier run on the same pair, max_disp and
+            downsample, as its StereoResult holds them, to sweep GCP or SGM settings
+            without running the CNN again (ignored without ``use_gcp``).
+        cancel : CancelFlag, optional
+            Another thread may set it to stop the run: raises ``cancel.Cancelled`` within
+            a row of a CPU kernel or a CNN layer.
+        camera : tuple of float, optional
+            (f * T in px m, cx_left - cx_right in px), the depth Z = f * T / (d - offset) of
+            a disparity d, for min_depth and max_depth; None: those limits are not applied.
+
+        Returns
+        -------
+        StereoResult
+            The disparity in px of the input images (NaN where invalid) and the maps it
+            was made from, each (H, W); `seconds` holds each stage's wall time.
+
+        Raises
+        ------
+        ValueError
+            For images it cannot take (shape, dtype, NaN, unequal sizes, narrower than the
+            disparity range, naming which) or a pair that would need more than
+            memory_limit_mb, saying what to lower.
+
         """
         cfg = self.config
         if cfg.use_gcp and confidence is not None and len(confidence) != 3:

@@ -41,8 +41,11 @@ except ImportError as err:  # an optional extra: say which
 import torch
 from tqdm import tqdm
 
-from . import bag, evaluate
+from . import evaluate
+from .bag import add_run_options
+from .bag.run import convert, run_pipeline
 from .cli import console_main, positive_int
+from ..ros.params import load_params_file
 
 PROG = 'gcp-stereo-batch'
 CORES = os.cpu_count() or 1
@@ -71,12 +74,12 @@ def limit_threads(threads):
 def bag_task(options, inp, out, png):
     """Write output bag `out` of input bag `inp`; return what `gcp-stereo-bag run` prints."""
     limit_threads(options.threads)
-    values = bag.load_params_file(options.params) if options.params else {}
-    pipeline = _kept(('bag', options.params), lambda: bag.run_pipeline(values))
+    values = load_params_file(options.params) if options.params else {}
+    pipeline = _kept(('bag', options.params), lambda: run_pipeline(values, options.params))
     args = argparse.Namespace(**{**vars(options), 'inp': Path(inp), 'out': Path(out),
                                  'png': png and Path(png)})
     with contextlib.redirect_stdout(io.StringIO()) as log:
-        bag.convert(pipeline, values, args)
+        convert(pipeline, values, args)
     return log.getvalue()
 
 
@@ -269,7 +272,7 @@ def parser():
     bags.add_argument('--bags', nargs='+', metavar='DIR_OR_GLOB',
                       help='bags (folders, or their .mcap / .db3 files), folders of bags, or '
                            'shell patterns of them (quoted)')
-    bag.add_run_options(bags)
+    add_run_options(bags)
     frames = ap.add_argument_group('dataset frames (as gcp-stereo-eval)')
     evaluate.add_options(frames, dataset_required=False)
     ap.add_argument('--out', type=Path, metavar='DIR',
@@ -317,7 +320,7 @@ def main(argv=None):
     args = parse_args(argv)
     rows = {}
     if args.bags:  # settings and weights are checked here once, not by every item
-        bag.run_pipeline(bag.load_params_file(args.params) if args.params else {})
+        run_pipeline(load_params_file(args.params) if args.params else {}, args.params)
         items, todo = bag_items(args)
         args.out.mkdir(parents=True, exist_ok=True)
     else:

@@ -4,8 +4,12 @@
 Builds a rosbag per frame (Middlebury 2014 Motorcycle from scikit-image, and KITTI 2012
 000070 when ../shared/data is beside the checkout), starts gcp_stereo_node in a private ROS
 graph, plays each bag into it with `gcp-stereo-bag play`, records `disparity` and
-`gcp_mask`, writes colour-mapped PNGs to --out, prints the error rates against the ground
-truth and stops everything.
+`gcp_mask`, writes colour-mapped PNGs to --out (each disparity with a colour bar: its
+scale in px, far to near), prints the error rates against the ground truth and stops
+everything. --readme-image writes the Motorcycle disparity once more, README_WIDTH px
+across: doc/images/motorcycle_disparity.png is
+
+    gcp-stereo-demo --out out --readme-image doc/images/motorcycle_disparity.png
 """
 import argparse
 import os
@@ -20,11 +24,12 @@ import numpy as np
 from .cli import console_main
 from ..evaluation.datasets import load_frame
 from ..evaluation.metrics import error_rates
-from ..evaluation.viz import colorize, save_png
+from ..evaluation.viz import disparity_picture, save_png
 from ..ros.graph import package_file, peer_graph
 from ..stereo.images import mask_image
 
 SHARED = Path(__file__).resolve().parents[3] / 'shared' / 'data'
+README_WIDTH = 480  # px across of the --readme-image picture (the pair is 741 x 497)
 
 
 def frames_to_show():
@@ -46,7 +51,11 @@ def run(cmd):
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-demo', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument('--out', type=Path, default=Path('out'))
+    ap.add_argument('--out', type=Path, default=Path('out'),
+                    help='folder of the PNGs and the bags (default out)')
+    ap.add_argument('--readme-image', type=Path, metavar='PNG',
+                    help=f'also write the Motorcycle disparity, {README_WIDTH} px across with '
+                         'its colour bar, here (the picture the README shows)')
     args = ap.parse_args(argv)
     frames = frames_to_show()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -83,8 +92,10 @@ def main(argv=None):
             disp -= disp_msg.min_disparity
             gcp = image_to_array(got['gcp_mask'][i]) > 0
             stem = name.replace('/', '_')
-            save_png(args.out / f'{stem}_disparity.png',
-                     colorize(disp, disp_msg.max_disparity - disp_msg.min_disparity + 1))
+            top = disp_msg.max_disparity - disp_msg.min_disparity + 1
+            save_png(args.out / f'{stem}_disparity.png', disparity_picture(disp, top))
+            if args.readme_image and name == 'motorcycle':
+                save_png(args.readme_image, disparity_picture(disp, top, README_WIDTH))
             save_png(args.out / f'{stem}_gcp_mask.png', mask_image(gcp))
             rows.append((name, error_rates(disp, frame.gt, frame.valid), 100 * gcp.mean()))
     keys = ('bad1', 'bad2', 'bad3', 'bad5', 'mae', 'density', 'bad3_published')

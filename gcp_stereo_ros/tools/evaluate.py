@@ -6,7 +6,8 @@ frame and mean; unpublished pixels filled by the KITTI devkit's background inter
 as a KITTI submission is scored), then as KITTI reports them the density (% of ground-truth
 pixels published), bad3_published (% of published pixels off by more than 3 px) and
 near3_published (% of published pixels more than 3 px too near); the JSON rows also hold
-bad1/2/5 of both kinds and mae. Optionally writes colour-mapped disparity PNGs.
+bad1/2/5 of both kinds and mae. Optionally writes colour-mapped disparity PNGs, each with
+a colour bar of its scale in px (far to near).
 """
 import argparse
 import fnmatch
@@ -23,13 +24,16 @@ import yaml
 from .cli import console_main, positive_int
 from ..evaluation.datasets import list_frames, load_frame
 from ..evaluation.metrics import error_rates
-from ..evaluation.viz import colorize, save_png
+from ..evaluation.viz import disparity_picture, save_png
 from ..stereo.config import PRESETS, StereoConfig
 from ..stereo.images import gray_pair
 from ..stereo.pipeline import StereoPipeline
 
 METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
-FIELDS = sorted(StereoConfig.__dataclass_fields__)  # the parameters --set may override
+# Fields that options set: --set (and gcp-stereo-plot's --grid) may not.
+OPTION_FIELDS = {'cost': '--methods', 'use_gcp': '--methods', 'max_disp': '--max-disp',
+                 'paths': '--paths'}
+FIELDS = sorted(set(StereoConfig.__dataclass_fields__) - set(OPTION_FIELDS))  # --set's keys
 
 
 def opencv_sgbm(left, right, max_disp, block=5):
@@ -69,7 +73,7 @@ class Runner:
         self.paths = paths
         self.overrides = dict(overrides or {})
         self.preset = preset
-        self._pipeline = StereoPipeline(self.config('census', 16))
+        self._pipeline = None  # made by the first method run, then shared (its CNN too)
 
     def config(self, method, max_disp, point=None):
         """
@@ -83,7 +87,9 @@ class Runner:
                                      paths=self.paths, **{**self.overrides, **(point or {})})
 
     def pipeline(self, method, max_disp):
-        self._pipeline = self._pipeline.with_config(self.config(method, max_disp))
+        config = self.config(method, max_disp)
+        self._pipeline = (StereoPipeline(config) if self._pipeline is None
+                          else self._pipeline.with_config(config))
         return self._pipeline
 
     def run(self, method, left, right, max_disp):
@@ -134,6 +140,8 @@ def parse_overrides(items):
     out = {}
     for item in items or []:
         key, sep, value = item.partition('=')
+        if sep and key in OPTION_FIELDS:
+            raise ValueError(f'--set {item!r}: {key} is set by {OPTION_FIELDS[key]}')
         if not sep or key not in FIELDS:
             raise ValueError(f'--set expects KEY=VALUE with KEY among {FIELDS}, '
                              f'got {item!r}')
@@ -164,8 +172,22 @@ def add_options(ap, dataset_required=True):
 
 
 def make_runner(args):
-    """Return the Runner of the options of `add_options`."""
-    return Runner(args.paths, parse_overrides(args.set), args.preset)
+    """
+    Return the Runner of the options of `add_options`.
+
+    Raises ValueError, before any frame runs, if --preset and --set give a method of
+    args.methods an invalid config, naming the method and the value.
+    """
+    runner = Runner(args.paths, parse_overrides(args.set), args.preset)
+    for method in args.methods:
+        run_by = cnn_method(method) or (None if method == 'opencv-sgbm' else method)
+        if run_by is not None:
+            try:
+                runner.config(run_by, args.max_disp or 128)
+            except ValueError as err:
+                given = ''.join(f' --set {item}' for item in args.set or ())
+                raise ValueError(f'{method} with --preset {args.preset}{given}: {err}') from None
+    return runner
 
 
 def evaluate_frame(runner, args, source, name):
@@ -190,7 +212,8 @@ def evaluate_frame(runner, args, source, name):
             cfg = runner.config(cnn, max_disp)
             rows[-1]['bf16'] = resolve_bf16(cfg.bf16, cfg.device)
         if args.out:
-            save_png(args.out / f'{name.replace("/", "_")}_{method}.png', colorize(disp, max_disp))
+            save_png(args.out / f'{name.replace("/", "_")}_{method}.png',
+                     disparity_picture(disp, max_disp))
     return rows, frame.note or ''
 
 
@@ -220,7 +243,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     add_options(ap)
-    ap.add_argument('--out', type=Path, help='write colour-mapped disparity PNGs here')
+    ap.add_argument('--out', type=Path, help='write colour-mapped disparity PNGs here, each '
+                    'with a colour bar of its scale in px')
     args = ap.parse_args(argv)
 
     runner = make_runner(args)

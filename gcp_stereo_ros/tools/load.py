@@ -32,7 +32,7 @@ import time
 import cv2
 import yaml
 
-from .bag import wait_for_subscribers
+from .bag.play import wait_for_subscribers
 from .cli import console_main, positive
 from ..evaluation.datasets import list_frames, load_frame
 from ..ros.graph import peer_graph
