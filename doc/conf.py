@@ -42,7 +42,7 @@ if (REPO / 'package.xml').is_file():  # else rosdoc2 sets them from its package.
 extensions = ['myst_parser', 'sphinx.ext.autodoc', 'gcp_parameters']
 source_suffix = {'.rst': 'restructuredtext', '.md': 'markdown'}
 root_doc = 'index'
-exclude_patterns = ['_build', 'ext']
+exclude_patterns = ['_build', 'ext', 'images/README.md']  # the pictures' provenance
 myst_heading_anchors = 3  # `page.md#a-heading` links
 autodoc_member_order = 'bysource'
 smartquotes = False  # quotes as typed: 'census' as ros2 param describe prints it
