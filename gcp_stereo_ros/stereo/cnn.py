@@ -292,7 +292,7 @@ def _conv_relu(conv, x, weight, bias):
 
     On the CPU as one oneDNN primitive, the ReLU applied to the output as it is written:
     a separate ReLU was a quarter of the CNN's time with two cores (a pass over each layer's
-    output; README, "Speed").
+    output; doc/speed.md).
     """
     if x.device.type == 'cpu' and torch.backends.mkldnn.is_available():
         return torch.ops.mkldnn._convolution_pointwise(
@@ -310,7 +310,7 @@ def _first_layer_bf16(conv, x):
     the size of a gray level's step, different in the two images. With every layer under
     autocast the defaults' error rates moved by up to 0.15 point on a validation frame; with
     this first layer (the others in bfloat16) by 0.061 at most, about the noise of any
-    change of rounding (the first layer in float32 gave 0.095; README, "bf16"). So
+    change of rounding (the first layer in float32 gave 0.095; doc/method.md, "bf16"). So
     x = x_hi + x_lo and w = w_hi + w_lo, each part bfloat16, and
     x * w ~ x_hi w_hi + x_lo w_hi + x_hi w_lo (the dropped term is at most about 2^-16 of
     it): one bfloat16 convolution of 3 input channels, accumulated in float32, faster than

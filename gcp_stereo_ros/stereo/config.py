@@ -15,7 +15,7 @@ from . import cost as cost_mod
 from .sgm import PATHS
 
 # Defaults for each matching cost, chosen by cross-validation on the validation frames
-# (README: "Method and results"); theta is on the calibrated scale (cnn.calibrated).
+# (doc/method.md); theta is on the calibrated scale (cnn.calibrated).
 COST_DEFAULTS = {
     'census': {'p1': 8.0, 'p2': 128.0, 'theta': 0.3, 'c_hi': 200.0, 'c_low': 5.0,
                'gcp_lr_check': True},
@@ -175,11 +175,11 @@ class StereoConfig:
     weights: str = ''
     device: str = 'cpu'
     # 'auto': see cnn.bf16_native; on the validation frames the defaults' error rates moved
-    # by at most 0.061 point (README, "Speed").
+    # by at most 0.061 point (doc/speed.md).
     bf16: bool | str = 'auto'
     subpixel: bool = True
     median: bool = False
-    # Invalidation (stereo.postprocess; README "What is published"), chosen on the validation
+    # Invalidation (stereo.postprocess; doc/published.md), chosen on the validation
     # frames. The left-right check is off: on the validation frames 89 % of the pixels it
     # rejects are right; its agreement is a confidence feature instead.
     valid_window: bool = True

@@ -81,7 +81,7 @@ def memory_bytes(cfg, height, width):
     one strip's activations (two images, 64 float32 maps of STRIP_ROWS + 8 rows), or
     PIXEL_BYTES per pixel for the later stages; with downsample, FULL_PIXEL_BYTES per
     full-size pixel; or, if more, POST_PIXEL_BYTES per full-size pixel for the invalidation
-    and confidence. Measured peaks stay below it (README, "Failures, memory and shutdown").
+    and confidence. Measured peaks stay below it (doc/failures.md).
     """
     fixed, per_disparity = _memory_terms(cfg, height, width)
     return fixed + per_disparity * cfg.matched_disp
@@ -146,7 +146,7 @@ def mmap_large_arrays():
     100 MB more after the arrays were let go and steady peaks 30 % higher. A fixed threshold
     of 1 MiB made RSS follow the arrays alive, but every block of a frame was then fresh
     pages (a page fault per 4 KiB): a KITTI pair took 1.3 s instead of 0.74 s (CNN 0.74 s
-    instead of 0.35 s; README, "Speed"). With MMAP_BYTES the blocks freed within a pair (a
+    instead of 0.35 s; doc/speed.md). With MMAP_BYTES the blocks freed within a pair (a
     CNN strip's layer outputs, 24 per pair) are reused within it, the volumes are mmap'd, and
     each pair ends by giving the freed heap memory back (malloc_trim), so RSS between pairs
     still follows the arrays alive.

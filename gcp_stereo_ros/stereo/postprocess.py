@@ -7,7 +7,7 @@ What of the winner-takes-all disparity to publish, and how sure each pixel is; R
   candidates exist (x < max_disp - 1: only d <= x was searched), where the winner lies at
   the end of its range (d >= x - 1, so the minimum may lie beyond the range); a winner
   inside its range is kept (on the KITTI validation frames 5.8 % of the band's pixels
-  are wrong, 4.2 % of the others: README "What is published");
+  are wrong, 4.2 % of the others: doc/published.md);
 - that fail the left-right check (`lr_check`: the right view's winner at x - d is more than
   1 px from d);
 - that fail the uniqueness test (`uniqueness_ratio` u, OpenCV's uniquenessRatio): invalid

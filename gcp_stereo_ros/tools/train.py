@@ -23,7 +23,8 @@ any number of processes.
 The data split of the shipped weights (`gcp_stereo_ros/weights/gcp_cnn.pt`) is
 config/cnn_split.yaml (`--split`): 33 KITTI 2015 road frames and 14 Middlebury scenes to
 train, 10 other KITTI 2015 frames and 4 Middlebury scenes of other families to validate.
-The README and the weights' meta hold the command that made them.
+doc/evaluation.md ("The shipped CNN weights") and the weights' meta hold the command that
+made them.
 
 Validation (each epoch, frames `--val-frames`): hinge loss over all valid pixels with
 offsets drawn from a fixed generator (seed 0, independent of `--seed`), and the GCP
