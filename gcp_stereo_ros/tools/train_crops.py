@@ -152,11 +152,16 @@ class _Warp:
                              mode='bilinear', padding_mode='border', align_corners=True)
 
 
+def _log_uniform(rng, factor):
+    """Return a factor in [1 / factor, factor], uniform in log."""
+    return np.exp(rng.uniform(-1, 1) * np.log(factor))
+
+
 def _photometric(rng, aug):
     """(contrast, brightness) of the left and the right view."""
-    c = np.exp(rng.uniform(-1, 1) * np.log(aug.contrast))
+    c = _log_uniform(rng, aug.contrast)
     b = rng.uniform(-aug.brightness, aug.brightness)
-    return [(c * np.exp(rng.uniform(-1, 1) * np.log(aug.view_contrast)),
+    return [(c * _log_uniform(rng, aug.view_contrast),
              b + rng.uniform(-aug.view_brightness, aug.view_brightness)) for _ in range(2)]
 
 
@@ -173,7 +178,7 @@ def draw_crop(view, rng, h=None, w=None, aug=None, hard=0.0):
     if aug is None:
         warp = _Warp(int(rng.integers(width - w + 1)), int(rng.integers(height - h + 1)), h)
     else:
-        s = np.exp(rng.uniform(-1, 1) * np.log(aug.scale))
+        s = _log_uniform(rng, aug.scale)
         span = (min(w / s, width - 1), min(h / s, height - 1))
         warp = _Warp(rng.uniform(0, width - 1 - span[0]), rng.uniform(0, height - 1 - span[1]),
                      h, s, rng.uniform(-aug.shear, aug.shear),
