@@ -325,9 +325,9 @@ def test_set_parameters_live(harness, pair):
     assert all(r.successful for r in harness.set_params({'sad.P2': 20.0, 'cost': 'sad'}))
     names = ('theta', 'P1', 'P2', 'c_hi', 'c_low')
     assert {n: harness.node.get_parameter(f'census.{n}').value for n in names} == {
-        'theta': 0.6, 'P1': 6.0, 'P2': 100.0, 'c_hi': 200.0, 'c_low': 5.0}
+        'theta': 0.6, 'P1': 6.0, 'P2': 100.0, 'c_hi': 200.0, 'c_low': 2.0}
     assert {n: harness.node.get_parameter(f'sad.{n}').value for n in names} == {
-        'theta': 0.45, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
+        'theta': 0.2, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001}
     harness.send_pair(left, right, 'rgb8', 8_000_000_000)
     wait_for(lambda: stamp_of(harness.disparity[-1]) == 8_000_000_000,
              'disparity after cost switch')
@@ -786,8 +786,8 @@ def test_arrays_are_let_go_when_quiet(harness, pair):
 
 @pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
 def test_a_theta_no_pixel_can_reach_is_warned_about(harness):
-    harness.set_params({'use_gcp': True, 'census.theta': 0.9})  # the weights reach 0.842
-    wait_for(lambda: any('theta 0.9 selects no GCP' in m for m in harness.error_logs('WARN')),
+    harness.set_params({'use_gcp': True, 'census.theta': 0.95})  # the weights reach 0.903
+    wait_for(lambda: any('theta 0.95 selects no GCP' in m for m in harness.error_logs('WARN')),
              'theta warning')
 
 

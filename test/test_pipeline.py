@@ -95,7 +95,7 @@ def test_refinement_of_uint16_volume_needs_integers():
 
 @pytest.mark.parametrize('overrides, scale', [
     ({}, 10),  # the paper's C_low = 1.3
-    ({'p1': 8.0, 'c_low': 5.0}, 1),  # the defaults
+    ({'p1': 12.0, 'c_low': 2.0}, 1),  # the defaults
     ({'use_gcp': False}, 1),
     ({'c_low': 1.25}, 4),
     ({'c_low': 1.2345}, None),  # needs s = 2000: 16 * 2000 * (200 + 128) > 65535

@@ -121,7 +121,7 @@ def test_shipped_params_file_applies_under_any_name(graph, remap):
     """`namespace:=stereo` in the launch file, `-r __ns:=`, `-r __node:=` (rcl parses the file)."""
     g = graph('--params-file', str(PAPER), *remap, *QUICK)
     assert g.get('census.theta', 'census.P1', 'census.c_low', 'gcp_lr_check', 'sad.P2') == [
-        0.6, 4.0, 1.3, False, 14.0]  # the defaults differ: census.P1 8.0, sad.P2 0.5, ...
+        0.6, 4.0, 1.3, False, 14.0]  # the defaults differ: census.P1 12.0, sad.P2 0.5, ...
 
 
 def test_dump_then_load_restores_exactly_what_was_dumped(graph, tmp_path):

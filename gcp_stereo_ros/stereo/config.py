@@ -17,9 +17,9 @@ from .sgm import PATHS
 # Defaults for each matching cost, chosen by cross-validation on the validation frames
 # (doc/method.md); theta is on the calibrated scale (cnn.calibrated).
 COST_DEFAULTS = {
-    'census': {'p1': 8.0, 'p2': 128.0, 'theta': 0.3, 'c_hi': 200.0, 'c_low': 5.0,
+    'census': {'p1': 12.0, 'p2': 128.0, 'theta': 0.2, 'c_hi': 200.0, 'c_low': 2.0,
                'gcp_lr_check': True},
-    'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.45, 'c_hi': 5.0, 'c_low': 0.001,
+    'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.2, 'c_hi': 5.0, 'c_low': 0.001,
             'gcp_lr_check': True},
 }
 # The paper's values (Zhong et al., section 4): its theta is read on our calibrated scale.
@@ -189,7 +189,7 @@ class StereoConfig:
     speckle_range: int = 4
     min_depth: float = 0.3
     max_depth: float = 0.0
-    min_confidence: float = 0.88
+    min_confidence: float = 0.86
     downsample: int = 1
     memory_limit_mb: int = 3072
 
