@@ -112,7 +112,7 @@ def test_defaults_publish_what_the_match_supports(kitti, name, density, bad3, ne
     frame, result, raw = kitti[name]
     r, before = (error_rates(x.disparity, frame.gt, frame.valid) for x in (result, raw))
     assert r['density'] > density and r['bad3_published'] < bad3 and r['near3_published'] < near
-    assert before['density'] == 100 and before['bad3_published'] > 3.5  # unfiltered: 4.3 on both
+    assert before['density'] == 100 and before['bad3_published'] > 4.0  # unfiltered: 4.3 on both
     assert before['near3_published'] > 2 * r['near3_published']
 
 
