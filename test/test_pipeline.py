@@ -10,7 +10,7 @@ from gcp_stereo_ros.evaluation.datasets import load_frame
 
 from gcp_stereo_ros.evaluation.metrics import error_rates
 from gcp_stereo_ros.stereo.cancel import CancelFlag, Cancelled
-from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
+from gcp_stereo_ros.stereo.config import StereoConfig
 from gcp_stereo_ros.stereo.gcp import refine, select
 from gcp_stereo_ros.stereo.images import bin_area, upsample
 from gcp_stereo_ros.stereo.memory import fixed_point_scale, memory_bytes, MIB, mmap_large_arrays
@@ -193,20 +193,25 @@ def test_downsample_matches_the_binned_pair_and_scales_back(motorcycle):
     """
     Check that downsample 2 is matching the area-binned pair with max_disp / 2.
 
-    The outputs come back at the full (odd) size, each value repeated over its 2x2 block,
+    The invalidation runs on the small pair too, with the speckle size and range scaled to
+    it; the outputs come back at the full (odd) size, each value repeated over its 2x2 block,
     disparities doubled; its confidence, fed back in, gives the same result.
     """
     left, right, _ = motorcycle
     left, right = left[150:351, 300:601], right[150:351, 300:601]
-    # the invalidation runs at full size, the test at matching size: off here
+    # min_confidence off: each downsample has a confidence fit of its own
     pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=64, downsample=2,
-                                                **UNFILTERED))
+                                                min_confidence=0.0, speckle_size=100,
+                                                speckle_range=4))
     half = pipe(left, right)
-    small = pipe.with_config(pipe.config.replace(max_disp=32, downsample=1))(
+    small = pipe.with_config(pipe.config.replace(max_disp=32, downsample=1, speckle_size=25,
+                                                 speckle_range=2))(
         *(bin_area(g.astype(np.float32) @ np.float32([0.299, 0.587, 0.114]), 2)
           for g in (left, right)))
     assert half.disparity.shape == left.shape[:2]
-    for name, k in (('disparity', 2), ('gcp', 1), ('cof_c', 1), ('cof_d', 2), ('cof_dr', 2)):
+    assert 0.01 < np.isnan(half.disparity).mean() < 0.5  # the tests ran
+    for name, k in (('disparity', 2), ('gcp', 1), ('cof_c', 1), ('cof_d', 2), ('cof_dr', 2),
+                    ('consistent', 1), ('margin', 1)):
         np.testing.assert_array_equal(
             getattr(half, name), upsample(getattr(small, name) * k, 2, left.shape[:2]), name)
     again = pipe(left, right, confidence=(half.cof_c, half.cof_d, half.cof_dr))

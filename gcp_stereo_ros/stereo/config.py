@@ -137,10 +137,11 @@ class StereoConfig:
         winner's; in [0, 99], 0 = off.
     speckle_size : int
         Pixels: invalidate connected regions of at most this many pixels (neighbours
-        within speckle_range), as stereo_image_proc; in [0, 1000000], 0 = off.
+        within speckle_range), as stereo_image_proc; in [0, 1000000], 0 = off. Full-size
+        pixels: with downsample f the test runs on the matching grid with size // f^2.
     speckle_range : int
         Pixels of disparity: the largest difference of two neighbours of one speckle
-        region; in [0, 1024].
+        region; in [0, 1024] (full-size pixels: range / f on the matching grid).
     min_depth : float
         Metres: invalidate depths below this (applied only with a camera model); in
         [0, 1000000], 0 = no limit.

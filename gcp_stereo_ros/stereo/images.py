@@ -80,6 +80,11 @@ def upsample(a, factor, shape):
     return np.take(np.take(a, rows, axis=0), cols, axis=1)
 
 
+def subsample(a, factor, shape):
+    """Return the (H, W) grid `shape` of which `a` is the `upsample` by `factor` (its inverse)."""
+    return np.asarray(a)[:shape[0] * factor:factor, :shape[1] * factor:factor]
+
+
 def mask_image(mask):
     """Boolean mask as a uint8 0/255 image (mono8, PNG)."""
     return np.asarray(mask, dtype=bool).astype(np.uint8) * 255

@@ -14,7 +14,7 @@ import numpy as np
 from . import cost as cost_mod
 from .config import StereoConfig
 from .gcp import refine, select
-from .images import bin_area, gray_pair, mean_std, upsample
+from .images import bin_area, gray_pair, mean_std, subsample, upsample
 from .memory import call_glibc, check_memory, volume_arithmetic
 from .postprocess import Confidence, features, invalidate, margin
 from .sgm import aggregate, winners
@@ -53,7 +53,7 @@ class StereoResult:
         Wall time in seconds per stage, {stage name: float}, in the order run. Stages
         (each only when it ran): 'downsample', 'upload' (GPU), 'cnn' and 'confidence'
         (the CNN's convolutions and correlation), 'cost', 'refine' (GCPs), 'sgm', 'wta',
-        'download' (GPU), 'upsample', 'disparity_confidence', 'invalidate'.
+        'download' (GPU), 'disparity_confidence', 'invalidate', 'upsample'.
     confidence : numpy.ndarray or None
         float32 (H, W) in [0, 1]: the calibrated probability that the published disparity
         is within 3 px of the truth (``postprocess.Confidence``), 0 where the disparity is
@@ -201,8 +201,7 @@ class StereoPipeline:
         if f > 1:
             left, right = bin_area(left, f), bin_area(right, f)
             if cfg.use_gcp and confidence is not None:  # undo the upsampling of its run
-                h, w = left.shape
-                cof_c, cof_d, cof_dr = (np.asarray(a)[:h * f:f, :w * f:f] for a in confidence)
+                cof_c, cof_d, cof_dr = (subsample(a, f, left.shape) for a in confidence)
                 confidence = cof_c, cof_d // f, cof_dr // f
             lap('downsample')
         confidence = confidence if cfg.use_gcp else None
@@ -215,13 +214,6 @@ class StereoPipeline:
         del s_best, s_second
         if cfg.median:
             disp = cv2.medianBlur(disp, 3)
-        if f > 1:  # back to full size, disparities in full-size pixels
-            disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
-                                   for a in (disp, cof_d, cof_dr))
-            disp, consistent, m, gcp, cof_c, cof_d, cof_dr = (
-                None if a is None else upsample(a, f, shape)
-                for a in (disp, consistent, m, gcp, cof_c, cof_d, cof_dr))
-            lap('upsample')
         sure = None
         if self.fit is not None:
             sure = self.fit(features(disp, consistent, m, cof_c, cof_d, gcp))
@@ -230,6 +222,13 @@ class StereoPipeline:
         if sure is not None:
             sure[np.isnan(disp)] = 0.0
         lap('invalidate')
+        if f > 1:  # back to full size, disparities in full-size pixels
+            disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
+                                   for a in (disp, cof_d, cof_dr))
+            disp, consistent, m, gcp, cof_c, cof_d, cof_dr, sure = (
+                None if a is None else upsample(a, f, shape)
+                for a in (disp, consistent, m, gcp, cof_c, cof_d, cof_dr, sure))
+            lap('upsample')
         call_glibc('malloc_trim', 0)  # the heap blocks this pair freed (see mmap_large_arrays)
         return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds, sure, consistent, m)
 

@@ -17,14 +17,18 @@ What of the winner-takes-all disparity to publish, and how sure each pixel is; R
 - in speckles (OpenCV's filterSpeckles with stereo_image_proc's meaning): connected regions
   of at most `speckle_size` pixels, neighbours within `speckle_range` px of each other.
 A value of 0 (False) turns each off. The CPU and the CUDA pipeline give the same inputs
-(`sgm.winners`, `sgm_cuda.winners`), so both apply this identically.
+(`sgm.winners`, `sgm_cuda.winners`), so both apply this identically. With `downsample` f
+everything here runs on the matching grid, 1 / f of the images, before the result is blown
+up to full size: the sizes and disparities the parameters give in full-size pixels are
+scaled to it (a speckle of `speckle_size` / f^2 matching pixels, `speckle_range` / f).
 
 The confidence (`Confidence`) is the probability that the published disparity is within
 3 px of the truth, from what the pipeline knows of the pixel: the calibrated CNN confidence,
 whether it is a GCP and its CNN disparity agrees with the final one, the SGM cost margin
 1 - S(winner) / S(rival) and the left-right agreement. A logistic score of these, mapped
 through an isotonic fit, both fitted on the validation frames (`tools/fit_confidence.py`);
-the fit is stored beside the CNN weights (`<weights>.confidence.json`), one per method.
+the fit is stored beside the CNN weights (`<weights>.confidence.json`), one per method and
+downsample (`method_key`).
 """
 import json
 from pathlib import Path
@@ -47,7 +51,11 @@ def valid_window(cfg, shape):
 
     In full-size pixels when matched at 1 / cfg.downsample; empty for images too small.
     """
-    border = cfg.window // 2 * cfg.downsample
+    return _inside(cfg.window // 2 * cfg.downsample, shape)
+
+
+def _inside(border, shape):
+    """Return the region (x0, y0, x1, y1) of `shape` (H, W) at least `border` px from its edges."""
     h, w = shape
     x0, y0 = min(border, w), min(border, h)
     return x0, y0, max(w - border, x0), max(h - border, y0)
@@ -55,17 +63,16 @@ def valid_window(cfg, shape):
 
 def cut_short(disp, cfg):
     """
-    Return where the search was cut short (see the module's docstring), bool (H, W).
+    Return where the search was cut short (see the module's docstring), bool (h, w).
 
-    `disp` in full-size pixels; the test runs in matching pixels (1 / cfg.downsample).
+    `disp`: on the matching grid (1 / cfg.downsample of the images), in its pixels.
     """
-    x0, y0, x1, y1 = valid_window(cfg, disp.shape)
+    x0, y0, x1, y1 = _inside(cfg.window // 2, disp.shape)
     out = np.ones(disp.shape, bool)
     out[y0:y1, x0:x1] = False
-    f = cfg.downsample
-    x = np.arange(disp.shape[1]) // f
+    x = np.arange(disp.shape[1])
     with np.errstate(invalid='ignore'):
-        out |= (x < cfg.matched_disp - 1) & (x - disp / np.float32(f) <= 1)
+        out |= (x < cfg.matched_disp - 1) & (x - disp <= 1)
     return out
 
 
@@ -119,8 +126,14 @@ def features(disp, consistent, m, cof_c, cof_d, gcp):
 
 
 def method_key(cfg):
-    """Return the name of cfg's method as the confidence file keys it ('census+gcp', ...)."""
-    return cfg.cost + ('+gcp' if cfg.use_gcp else '')
+    """
+    Return the name of cfg's method as the confidence file keys it.
+
+    'census+gcp', 'sad', ...; matched at 1 / downsample with '@' and the factor appended
+    ('census+gcp@2'): each downsample has a fit of its own.
+    """
+    key = cfg.cost + ('+gcp' if cfg.use_gcp else '')
+    return key + (f'@{cfg.downsample}' if cfg.downsample > 1 else '')
 
 
 def confidence_path(weights):
@@ -176,9 +189,12 @@ def invalidate(disp, consistent, m, cfg, camera=None, confidence=None):
     """
     Set NaN in `disp` (float32, in place) where cfg's tests fail; return `disp`.
 
-    `m`: the `margin`; `confidence`: the calibrated confidence (float32 (H, W)) for
-    `min_confidence`, None if there is none (then it is not applied).
+    Every array is on the matching grid (1 / cfg.downsample of the images), `disp` in its
+    pixels; the depth limits and the speckle size and range, given for the full-size images,
+    are scaled to it. `m`: the `margin`; `confidence`: the calibrated confidence (float32)
+    for `min_confidence`, None if there is none (then it is not applied).
     """
+    f = cfg.downsample
     if cfg.valid_window:
         disp[cut_short(disp, cfg)] = np.nan
     if cfg.lr_check:
@@ -188,9 +204,9 @@ def invalidate(disp, consistent, m, cfg, camera=None, confidence=None):
     limits = depth_limits(cfg, camera)
     if limits is not None:
         with np.errstate(invalid='ignore'):
-            disp[(disp < limits[0]) | (disp > limits[1])] = np.nan
+            disp[(disp * f < limits[0]) | (disp * f > limits[1])] = np.nan
     if cfg.min_confidence and confidence is not None:
         disp[confidence < cfg.min_confidence] = np.nan
-    if cfg.speckle_size:
-        disp[speckles(disp, cfg.speckle_size, cfg.speckle_range)] = np.nan
+    if cfg.speckle_size // f ** 2:
+        disp[speckles(disp, cfg.speckle_size // f ** 2, cfg.speckle_range / f)] = np.nan
     return disp

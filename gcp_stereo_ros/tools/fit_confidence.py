@@ -7,12 +7,12 @@ equally): a logistic regression of postprocess.FEATURES, then an isotonic map of
 (`train.fit_calibration`, as the CNN's confidence is calibrated). The pixels are those of
 each method's default pipeline that `valid_window` keeps (the features are those of the
 WTA disparity before any test), so the fit holds whatever other test is on. Writes one
-entry per method into the file beside the weights (postprocess.confidence_path), keeping
-the other methods' entries.
+entry per method and downsample factor (postprocess.method_key) into the file beside the
+weights (postprocess.confidence_path), keeping the other entries.
 
-The shipped fit (the manual, doc/published.md):
+The shipped fits (the manual, doc/published.md):
     python -m gcp_stereo_ros.tools.fit_confidence --dataset ../shared/data \
-        --split config/cnn_split.yaml --methods census+gcp
+        --split config/cnn_split.yaml --methods census+gcp --downsample 1 2 4
 """
 import argparse
 import json
@@ -25,9 +25,10 @@ import yaml
 from .cli import console_main
 from .evaluate import Runner, select_frames
 from ..evaluation.datasets import load_frame
-from ..stereo.config import UNFILTERED
+from ..stereo.config import DOWNSAMPLE, UNFILTERED
+from ..stereo.images import subsample, upsample
 from ..stereo.postprocess import (Confidence, confidence_path, CONFIDENCE_PX, cut_short,
-                                  FEATURES, features)
+                                  FEATURES, features, method_key)
 
 RIDGE = 1e-6  # keeps the logistic fit defined when a feature is constant on the samples
 ITERATIONS = 25
@@ -61,15 +62,23 @@ def samples(result, config, gt, valid):
     """
     Return (features, correct) of the pixels with ground truth that `valid_window` keeps.
 
-    `result`: of `config` with every invalidation off.
+    `result`: of `config` with every invalidation off. The features are computed on the
+    matching grid (1 / downsample), as the pipeline computes them; each full-size pixel is a
+    sample with its matching pixel's features.
     """
-    disp = result.disparity
-    sel = ~cut_short(disp, config) & np.isfinite(gt)
+    f, shape = config.downsample, result.disparity.shape
+    grid = (shape[0] // f, shape[1] // f)
+    disp, consistent, m, cof_c, cof_d, gcp = (
+        None if a is None else subsample(a, f, grid)
+        for a in (result.disparity, result.consistent, result.margin, result.cof_c,
+                  result.cof_d, result.gcp))
+    disp = disp / np.float32(f)
+    cof_d = None if cof_d is None else cof_d // f
+    sel = ~upsample(cut_short(disp, config), f, shape) & np.isfinite(gt)
     if valid is not None:
         sel &= valid
-    feats = features(disp, result.consistent, result.margin, result.cof_c, result.cof_d,
-                     result.gcp)
-    return feats[sel], np.abs(disp[sel] - gt[sel]) <= CONFIDENCE_PX
+    feats = upsample(features(disp, consistent, m, cof_c, cof_d, gcp), f, shape)
+    return feats[sel], np.abs(result.disparity[sel] - gt[sel]) <= CONFIDENCE_PX
 
 
 def split_frames(path):
@@ -91,27 +100,31 @@ def main(argv=None):
     which.add_argument('--split', help="a split file: its 'validation' frames")
     ap.add_argument('--methods', nargs='+', default=['census+gcp'],
                     choices=('census', 'sad', 'census+gcp', 'sad+gcp'))
+    ap.add_argument('--downsample', nargs='+', type=int, default=[1], choices=DOWNSAMPLE,
+                    help='fit for each of these downsample factors (each has its own fit)')
     ap.add_argument('--weights', default='', help="CNN weights ('' = the shipped ones)")
     args = ap.parse_args(argv)
 
     frames = select_frames(args.dataset, split_frames(args.split) if args.split else args.frames)
-    runner = Runner(overrides={'weights': args.weights, **UNFILTERED})
     path = confidence_path(args.weights)
     fits = json.loads(path.read_text()) if path.is_file() else {}
-    for method in args.methods:
-        parts = []
-        for source, name in tqdm(frames, desc=method, unit='frame', leave=False):
-            frame = load_frame(source, name)
-            _, result, _ = runner.run(method, frame.left, frame.right, frame.max_disp)
-            feats, correct = samples(result, runner.config(method, frame.max_disp), frame.gt,
-                                     frame.valid)
-            parts.append((feats, correct, np.full(len(correct), 1.0 / len(correct))))
-        model = fit(*(np.concatenate(a) for a in zip(*parts)))
-        fits[method] = {'features': list(FEATURES), 'coef': model.coef.tolist(),
-                        'knots': [k.tolist() for k in model.knots],
-                        'frames': [name for _, name in frames]}
-        print(f'{method}: {len(frames)} frames, confidence from {model.knots[1][0]:.3f} '
-              f'to {model.knots[1][-1]:.3f}')
+    for factor in args.downsample:
+        runner = Runner(overrides={'weights': args.weights, 'downsample': factor, **UNFILTERED})
+        for method in args.methods:
+            parts = []
+            for source, name in tqdm(frames, desc=method, unit='frame', leave=False):
+                frame = load_frame(source, name)
+                _, result, _ = runner.run(method, frame.left, frame.right, frame.max_disp)
+                config = runner.config(method, frame.max_disp)
+                feats, correct = samples(result, config, frame.gt, frame.valid)
+                parts.append((feats, correct, np.full(len(correct), 1.0 / len(correct))))
+            model = fit(*(np.concatenate(a) for a in zip(*parts)))
+            key = method_key(config)
+            fits[key] = {'features': list(FEATURES), 'coef': model.coef.tolist(),
+                         'knots': [k.tolist() for k in model.knots],
+                         'frames': [name for _, name in frames]}
+            print(f'{key}: {len(frames)} frames, confidence from {model.knots[1][0]:.3f} '
+                  f'to {model.knots[1][-1]:.3f}')
     path.write_text(json.dumps(fits, indent=1) + '\n')
     print(f'wrote {path}')
 
