@@ -153,3 +153,27 @@ def test_published_confidence_and_paper_preset(kitti):
     pipe = StereoPipeline(paper)
     left = cv2.resize(frame.left, (400, 120))
     assert np.isfinite(pipe(left, cv2.resize(frame.right, (400, 120))).disparity).all()
+
+
+def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
+    """The fit tool writes one entry per downsample beside the weights it is given."""
+    from gcp_stereo_ros.stereo.cnn import DEFAULT_WEIGHTS
+    from gcp_stereo_ros.stereo.postprocess import Confidence
+    from gcp_stereo_ros.tools import fit_confidence
+    weights = tmp_path / 'net.pt'
+    weights.write_bytes(DEFAULT_WEIGHTS.read_bytes())
+    fit_confidence.main(['--dataset', str(data_dir), '--frames', 'kitti2015/000031_10',
+                         'middlebury_v2/cones', '--downsample', '1', '2',
+                         '--weights', str(weights)])
+    cfg = StereoConfig(weights=str(weights))
+    fits = [Confidence.load(cfg.replace(downsample=f)) for f in (1, 2, 4)]
+    assert fits[0] is not None and fits[1] is not None and fits[2] is None  # 4 not fitted
+    assert not np.array_equal(fits[0].coef, fits[1].coef)
+    # each full-size pixel with ground truth is a sample, labelled by its own error
+    frame = load_frame(data_dir, 'kitti2015/000031_10')
+    config = StereoConfig(weights=str(weights), downsample=2, **UNFILTERED)
+    result = StereoPipeline(config)(frame.left, frame.right)
+    feats, correct = fit_confidence.samples(result, config, frame.gt, frame.valid)
+    assert len(feats) == len(correct) > 10000 and 0.9 < correct.mean() < 1.0
+    sure = fits[1](feats)
+    assert abs(sure.mean() - correct.mean()) < 0.05  # calibrated on the frames it was fitted on
