@@ -9,8 +9,8 @@ from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
 from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from gcp_stereo_ros.stereo.postprocess import (cut_short, invalidate, margin, speckles,
-                                               valid_window)
+from gcp_stereo_ros.stereo.postprocess import (Confidence, cut_short, invalidate, margin,
+                                               speckles, valid_window)
 from gcp_stereo_ros.stereo.sgm import winners
 import numpy as np
 import pytest
@@ -124,7 +124,7 @@ def test_downsample_has_a_confidence_fit_of_its_own(data_dir):
     # wrong; with the full-size fit applied to blown-up features it was 92.7 % and 3.34 %
     frame = load_frame(data_dir, 'kitti2012/000070_10')
     pipe = StereoPipeline(StereoConfig(downsample=2))
-    full = StereoPipeline(StereoConfig()).fit
+    full = Confidence.load(StereoConfig())
     assert pipe.fit is not None and not np.array_equal(pipe.fit.coef, full.coef)
     r = error_rates(pipe(frame.left, frame.right).disparity, frame.gt, frame.valid)
     assert r['density'] > 80.0 and r['bad3_published'] < 2.0
@@ -158,7 +158,6 @@ def test_published_confidence_and_paper_preset(kitti):
 def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
     """The fit tool writes one entry per downsample beside the weights it is given."""
     from gcp_stereo_ros.stereo.cnn import DEFAULT_WEIGHTS
-    from gcp_stereo_ros.stereo.postprocess import Confidence
     from gcp_stereo_ros.tools import fit_confidence
     weights = tmp_path / 'net.pt'
     weights.write_bytes(DEFAULT_WEIGHTS.read_bytes())

@@ -203,10 +203,12 @@ def invalidate(disp, consistent, m, cfg, camera=None, confidence=None):
         disp[m < np.float32(cfg.uniqueness_ratio / 100)] = np.nan
     limits = depth_limits(cfg, camera)
     if limits is not None:
+        low, high = (np.float32(limit / f) for limit in limits)
         with np.errstate(invalid='ignore'):
-            disp[(disp * f < limits[0]) | (disp * f > limits[1])] = np.nan
+            disp[(disp < low) | (disp > high)] = np.nan
     if cfg.min_confidence and confidence is not None:
         disp[confidence < cfg.min_confidence] = np.nan
-    if cfg.speckle_size // f ** 2:
-        disp[speckles(disp, cfg.speckle_size // f ** 2, cfg.speckle_range / f)] = np.nan
+    size = cfg.speckle_size // f ** 2
+    if size:
+        disp[speckles(disp, size, cfg.speckle_range / f)] = np.nan
     return disp
