@@ -9,7 +9,9 @@ left out, and the mirrored pair (right and left images flipped horizontally and 
 shear, vertical jitter, contrast and brightness per view); `--hard-negatives F` scores a
 fraction F of the pixels on their hardest negative. SGD with momentum, cosine learning rate
 decay over all steps, fixed seed (numpy generator for crops and offsets, torch for the
-initial weights); `--bf16` runs the convolutions in bfloat16.
+initial weights); `--bf16` runs the convolutions in bfloat16. `--init` starts from trained
+weights with a schedule of its own (fine-tuning; the new weights' meta keeps their command and
+training time under 'init').
 
 Several processes or machines: start it with torchrun (e.g. `torchrun --standalone
 --nproc-per-node 2 -m gcp_stereo_ros.tools.train ...`). The processes form a
@@ -54,7 +56,7 @@ import yaml
 from .cli import console_main
 from .train_crops import Augment, crop_scores, CropLoss, draw_crop, hinge, views
 from ..evaluation.datasets import load_frames
-from ..stereo.cnn import confidence, GcpNet
+from ..stereo.cnn import confidence, GcpNet, load_net
 from ..stereo.gcp import gcp_quality
 
 CROP = (32, 256)  # left pixels per crop (rows, columns)
@@ -218,6 +220,9 @@ def parse_args(argv):
                    help="'cpu' or 'cuda' (under torchrun each process takes GPU LOCAL_RANK)")
     p.add_argument('--checkpoint-dir', type=Path, help='save a checkpoint after every epoch here')
     p.add_argument('--resume', type=Path, help='continue from this checkpoint')
+    p.add_argument('--init', type=Path,
+                   help='start from these weights (a gcp-stereo-train output) instead of random '
+                        'ones, with a schedule of its own; the meta records them')
     p.add_argument('--out', type=Path, default=Path('gcp_cnn.pt'), help='final weights file')
     args = p.parse_args(argv)
     for k in ('epochs', 'samples_per_epoch', 'batch_size', 'threads'):
@@ -276,7 +281,14 @@ def main(argv=None):
     val_frames = (_select(args.val_dataset or args.dataset, args.val_frames, 'validation')
                   if args.val_frames and rank == 0 else [])
     train_views = [v for f in train_frames for v in views(f, device)]
-    net = GcpNet().to(device, memory_format=torch.channels_last)
+    net = GcpNet()
+    init = None
+    if args.init:
+        start_net = load_net(args.init)
+        net.load_state_dict(start_net.state_dict())
+        init = {'weights': str(args.init),
+                **{k: start_net.meta.get(k) for k in ('command', 'seconds', 'init')}}
+    net = net.to(device, memory_format=torch.channels_last)
     optimizer = torch.optim.SGD(net.parameters(), lr=args.lr, momentum=args.momentum)
     steps = -(-args.samples_per_epoch // args.batch_size)
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=args.epochs * steps)
@@ -347,7 +359,7 @@ def main(argv=None):
             'val_frames': [f.name for f in val_frames], 'seed': args.seed, 'epochs': args.epochs,
             'bf16': args.bf16, 'augment': args.augment,
             'hard_negatives': args.hard_negatives, 'processes': world, 'seconds': seconds,
-            'torch': str(torch.__version__), 'history': history}
+            'torch': str(torch.__version__), 'init': init, 'history': history}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     torch.save({**blob, 'meta': meta}, args.out)
     tqdm.write(f'wrote {args.out} after {seconds:.0f} s of training')
