@@ -105,15 +105,15 @@ def main(argv=None):
     ap.add_argument('--weights', default='', help="CNN weights ('' = the shipped ones)")
     args = ap.parse_args(argv)
 
-    frames = select_frames(args.dataset, split_frames(args.split) if args.split else args.frames)
+    frames = [load_frame(source, name) for source, name in select_frames(
+        args.dataset, split_frames(args.split) if args.split else args.frames)]
     path = confidence_path(args.weights)
     fits = json.loads(path.read_text()) if path.is_file() else {}
     for factor in args.downsample:
         runner = Runner(overrides={'weights': args.weights, 'downsample': factor, **UNFILTERED})
         for method in args.methods:
             parts = []
-            for source, name in tqdm(frames, desc=method, unit='frame', leave=False):
-                frame = load_frame(source, name)
+            for frame in tqdm(frames, desc=method, unit='frame', leave=False):
                 _, result, _ = runner.run(method, frame.left, frame.right, frame.max_disp)
                 config = runner.config(method, frame.max_disp)
                 feats, correct = samples(result, config, frame.gt, frame.valid)
@@ -122,7 +122,7 @@ def main(argv=None):
             key = method_key(config)
             fits[key] = {'features': list(FEATURES), 'coef': model.coef.tolist(),
                          'knots': [k.tolist() for k in model.knots],
-                         'frames': [name for _, name in frames]}
+                         'frames': [frame.name for frame in frames]}
             print(f'{key}: {len(frames)} frames, confidence from {model.knots[1][0]:.3f} '
                   f'to {model.knots[1][-1]:.3f}')
     path.write_text(json.dumps(fits, indent=1) + '\n')
