@@ -234,14 +234,25 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
     for kind, paths in (('census', 16), ('sad', 8)):
         cfg = StereoConfig.for_cost(kind, 'paper', max_disp=ND, paths=paths, bf16=False,
                                     gcp_lr_check=True, subpixel=True)
-        cpu = StereoPipeline(cfg)(*crop, confidence=cnn)
+        on_cpu = StereoPipeline(cfg)
+        cpu = on_cpu(*crop, confidence=cnn)
         pipe = StereoPipeline(cfg.replace(device='cuda'))
         result = pipe(*crop, confidence=cnn)
         np.testing.assert_array_equal(result.gcp, cpu.gcp)
+        # the summed costs read back for background_ratio, of pixels all over the crop
+        rng = np.random.default_rng(0)
+        rows, cols = (rng.integers(0, n, 50).astype(np.intp) for n in crop[0].shape)
+        at = rng.integers(0, ND, (50, 4)).astype(np.intp)
+        got, want = pipe.summed_costs(rows, cols, at), on_cpu.summed_costs(rows, cols, at)
+        kept = on_cpu._workspace['total']  # the path sums of the pair
+        np.testing.assert_array_equal(want, kept[rows[:, None], cols[:, None], at])
+        assert got.dtype == want.dtype
         if kind == 'census':
             np.testing.assert_array_equal(result.disparity, cpu.disparity)
+            np.testing.assert_array_equal(got, want)
         else:  # SAD costs round differently: the last bits, and near-ties (flips at SAD near-ties)
             assert np.mean(~np.isclose(result.disparity, cpu.disparity, atol=1e-4)) < 0.01
+            np.testing.assert_allclose(got, want, rtol=1e-5)
         assert {'upload', 'cost', 'refine', 'sgm', 'wta', 'download'} <= set(result.seconds)
     own = pipe.with_config(StereoConfig.for_cost('census', max_disp=ND, paths=4, bf16=False,
                                                  device='cuda'))(*crop)

@@ -127,7 +127,13 @@ PARAMS = (
           'camera_info; 0 = no limit)', 'max_depth'),
     Param('min_confidence', _D.min_confidence,
           'invalidate where disparity_confidence, the calibrated probability that the '
-          'disparity is within 3 px of the truth, is below this (0 = off)', 'min_confidence'),
+          'disparity is within 3 px of the truth, is below this (0 = off), where the '
+          "pixel's background fits (background_ratio)", 'min_confidence'),
+    Param('background_ratio', _D.background_ratio,
+          'a pixel below min_confidence goes only where the summed SGM cost of its '
+          'background (the smaller disparity of the nearest pixels left and right in its row '
+          "that stay) is at most this many times the winner's (0 = off: every such pixel "
+          'goes; else at least 1)', 'background_ratio'),
     Param('downsample', _D.downsample,
           'match at 1/N resolution (1, 2 or 4): both images area-binned, max_disparity / N; '
           'outputs at full size, disparities in full-size pixels', 'downsample'),

@@ -292,9 +292,12 @@ def _conv_relu(conv, x, weight, bias):
 
     On the CPU as one oneDNN primitive, the ReLU applied to the output as it is written:
     a separate ReLU was a quarter of the CNN's time with two cores (a pass over each layer's
-    output; doc/speed.md).
+    output; doc/speed.md). oneDNN's bfloat16 path needs avx512bw/vl/dq or avx_ne_convert:
+    on other CPUs (AVX2 only) bfloat16 takes torch's plain convolution, emulated and slow
+    (bf16 'auto' is off there).
     """
-    if x.device.type == 'cpu' and torch.backends.mkldnn.is_available():
+    if (x.device.type == 'cpu' and torch.backends.mkldnn.is_available()
+            and (x.dtype != torch.bfloat16 or torch.ops.mkldnn._is_mkldnn_bf16_supported())):
         return torch.ops.mkldnn._convolution_pointwise(
             x, weight, bias, list(conv.padding), list(conv.stride), list(conv.dilation),
             conv.groups, 'relu', [], '')

@@ -32,7 +32,8 @@ PAPER = {
 # Every invalidation off (stereo.postprocess). The paper published every integer WTA
 # disparity: its preset has this and no sub-pixel fit.
 UNFILTERED = {'valid_window': False, 'lr_check': False, 'uniqueness_ratio': 0.0,
-              'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0, 'min_confidence': 0.0}
+              'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0, 'min_confidence': 0.0,
+              'background_ratio': 0.0}
 PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False} for cost, values in PAPER.items()}
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
 DOWNSAMPLE = (1, 2, 4)
@@ -54,6 +55,7 @@ RANGES = {
     'min_depth': (0.0, 1e6),
     'max_depth': (0.0, 1e6),
     'min_confidence': (0.0, 1.0),
+    'background_ratio': (0.0, 100.0),
     'memory_limit_mb': (64, 1 << 20),
 }
 # The only values of these fields.
@@ -150,7 +152,14 @@ class StereoConfig:
         0 = no limit, else above min_depth.
     min_confidence : float
         Invalidate where the calibrated probability that the disparity is within 3 px of
-        the truth (`StereoResult.confidence`) is below this; in [0, 1], 0 = off.
+        the truth (`StereoResult.confidence`) is below this, where the pixel's background
+        fits (`background_ratio`); in [0, 1], 0 = off.
+    background_ratio : float
+        A pixel below min_confidence goes only where its background, the smaller disparity
+        of the nearest pixels left and right in its row that stay, has a summed SGM cost at
+        most this many times the winner's: a low-confidence object whose costs rule out
+        the background behind it is kept; in [0, 100]: 0 = off (every pixel below
+        min_confidence goes), else at least 1.
     downsample : int
         Match at 1/downsample of the resolution (1, 2 or 4): both images area-binned,
         max_disp / downsample disparities; outputs at full size, disparities in
@@ -190,7 +199,8 @@ class StereoConfig:
     speckle_range: int = 4
     min_depth: float = 0.3
     max_depth: float = 0.0
-    min_confidence: float = 0.86
+    min_confidence: float = 0.9
+    background_ratio: float = 1.5
     downsample: int = 1
     memory_limit_mb: int = 3072
 
@@ -258,6 +268,9 @@ class StereoConfig:
                          'cost less than a 1 px step')
         if not {'c_hi', 'c_low'} & bad and self.c_low > self.c_hi:
             found.append(f'c_low ({self.c_low}) must be <= c_hi ({self.c_hi})')
+        if 'background_ratio' not in bad and 0 < self.background_ratio < 1:
+            found.append(f'background_ratio must be 0 (off) or at least 1 (a cost ratio to '
+                         f'the winner, whose cost is the least), got {self.background_ratio!r}')
         if (not {'min_depth', 'max_depth'} & bad and self.max_depth
                 and self.max_depth <= self.min_depth):
             found.append(f'max_depth ({self.max_depth}) must be above min_depth '

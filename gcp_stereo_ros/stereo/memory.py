@@ -67,7 +67,7 @@ STRIP_LAYERS = 8
 FULL_PIXEL_BYTES = 32
 # The invalidation and the confidence, per full-size pixel, while the volumes are kept: the
 # outputs alive then (31) and the features and their fit (121, measured with tracemalloc at
-# 741x500).
+# 741x500; the invalidation after them, with background_ratio, 35 at 1242x375).
 POST_PIXEL_BYTES = 152
 
 

@@ -17,7 +17,7 @@ from .gcp import refine, select
 from .images import bin_area, gray_pair, mean_std, subsample, upsample
 from .memory import call_glibc, check_memory, volume_arithmetic
 from .postprocess import Confidence, features, invalidate, margin
-from .sgm import aggregate, winners
+from .sgm import aggregate, costs_at, winners
 
 
 @dataclass
@@ -218,7 +218,7 @@ class StereoPipeline:
         if self.fit is not None:
             sure = self.fit(features(disp, consistent, m, cof_c, cof_d, gcp))
             lap('disparity_confidence')
-        invalidate(disp, consistent, m, cfg, camera, sure)
+        invalidate(disp, consistent, m, cfg, camera, sure, self.summed_costs)
         if sure is not None:
             sure[np.isnan(disp)] = 0.0
         lap('invalidate')
@@ -231,6 +231,25 @@ class StereoPipeline:
             lap('upsample')
         call_glibc('malloc_trim', 0)  # the heap blocks this pair freed (see mmap_large_arrays)
         return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds, sure, consistent, m)
+
+    def summed_costs(self, rows, cols, disparities):
+        """
+        Return the summed SGM costs of pixels at given disparities, of the pair matched last.
+
+        Pixel i is (rows[i], cols[i]) of the matching grid, intp (n,); `disparities` intp
+        (n, k), each in [0, matched_disp - 1]; returns (n, k) of the volume's type (uint16
+        fixed point or float32), read from the kept path sums (on the GPU with a CUDA
+        device). For `postprocess.background_fits`.
+        """
+        if self.config.device == 'cpu':
+            return costs_at(self._workspace['total'], rows, cols, disparities)
+        import torch
+        total = self._workspace['cuda_total']
+        fixed = total.dtype == torch.uint16  # read as int16, the same bits
+        index = [torch.from_numpy(np.ascontiguousarray(a, np.int64)).to(total.device)
+                 for a in (rows[:, None], cols[:, None], disparities)]
+        picked = (total.view(torch.int16) if fixed else total)[tuple(index)].cpu().numpy()
+        return picked.view(np.uint16) if fixed else picked
 
     def _match(self, left, right, confidence, lap, seconds, cancel):
         """

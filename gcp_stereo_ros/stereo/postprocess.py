@@ -13,7 +13,13 @@ What of the winner-takes-all disparity to publish, and how sure each pixel is; R
 - that fail the uniqueness test (`uniqueness_ratio` u, OpenCV's uniquenessRatio): invalid
   where a disparity more than 1 px from the winner has S(d) * (100 - u) < S(winner) * 100;
 - whose depth is below `min_depth` or beyond `max_depth` metres (with a camera model);
-- whose calibrated confidence is below `min_confidence`;
+- whose calibrated confidence is below `min_confidence` and whose background fits
+  (`background_ratio` r): a pixel's background is the smaller disparity of the nearest
+  pixels left and right in its row that stay (published and at least min_confidence), what
+  the KITTI devkit's interpolation fills a gap with; it fits where its summed SGM cost
+  (the least at its rounded disparity and 1 px either side) is at most r times the winner's.
+  A pixel whose costs rule its background out, a low-confidence object standing in front
+  of its row, keeps its disparity; with r = 0 every pixel below min_confidence goes;
 - in speckles (OpenCV's filterSpeckles with stereo_image_proc's meaning): connected regions
   of at most `speckle_size` pixels, neighbours within `speckle_range` px of each other.
 A value of 0 (False) turns each off. The CPU and the CUDA pipeline give the same inputs
@@ -34,6 +40,7 @@ import json
 from pathlib import Path
 
 import cv2
+from numba import njit
 import numpy as np
 
 CONFIDENCE_PX = 3  # the confidence is P(|d - truth| <= CONFIDENCE_PX)
@@ -185,14 +192,78 @@ def speckles(disp, size, max_diff):
     return (filtered == invalid) & np.isfinite(disp)
 
 
-def invalidate(disp, consistent, m, cfg, camera=None, confidence=None):
+@njit(cache=True)
+def backgrounds(disp, low):
+    """
+    Return each `low` pixel's background disparity, float32 (h, w), NaN elsewhere.
+
+    The smaller disparity of the nearest pixels left and right in its row that are finite
+    and not `low` (at a row's end the one there is; NaN where its row has none).
+    """
+    h, w = disp.shape
+    out = np.full((h, w), np.nan, np.float32)
+    for y in range(h):
+        left = np.float32(np.inf)  # the last pixel that stays, left of x
+        start = 0  # the first low pixel since it
+        for x in range(w + 1):
+            stays = x < w and np.isfinite(disp[y, x]) and not low[y, x]
+            if x < w and not stays:
+                continue
+            b = min(left, disp[y, x]) if x < w else left
+            if np.isfinite(b):
+                for u in range(start, x):
+                    if low[y, u]:
+                        out[y, u] = b
+            if x < w:
+                left, start = disp[y, x], x + 1
+    return out
+
+
+@njit(cache=True)
+def _lookups(disp, b, top):
+    """
+    Return rows, cols (n,) and disparities (n, 4) of the pixels with a background `b`.
+
+    The disparities: the background's, rounded, 1 px either side of it, and the winner's,
+    each clipped to [0, top].
+    """
+    rows, cols = np.nonzero(np.isfinite(b))
+    out = np.empty((len(rows), 4), np.intp)
+    for i in range(len(rows)):
+        at = np.intp(np.rint(b[rows[i], cols[i]]))
+        for j in range(3):
+            out[i, j] = min(max(at + j - 1, 0), top)
+        out[i, 3] = min(max(np.intp(np.rint(disp[rows[i], cols[i]])), 0), top)
+    return rows, cols, out
+
+
+def background_fits(disp, low, costs, cfg):
+    """
+    Return where a `low` pixel's background fits within cfg.background_ratio, bool (h, w).
+
+    See the module's docstring. `costs(rows, cols, disparities)` gives the summed SGM costs
+    of the pixels (rows[i], cols[i]) at disparities[i, :] in [0, cfg.matched_disp - 1],
+    (n,) (n,) (n, k) intp -> (n, k) (the pipeline's `StereoPipeline.summed_costs`); a low
+    pixel without a background fits.
+    """
+    rows, cols, at = _lookups(disp, backgrounds(disp, low), cfg.matched_disp - 1)
+    s = costs(rows, cols, at).astype(np.float64)
+    kept = s[:, :3].min(1) > cfg.background_ratio * s[:, 3]
+    fits = low.copy()
+    fits[rows[kept], cols[kept]] = False
+    return fits
+
+
+def invalidate(disp, consistent, m, cfg, camera=None, confidence=None, costs=None):
     """
     Set NaN in `disp` (float32, in place) where cfg's tests fail; return `disp`.
 
     Every array is on the matching grid (1 / cfg.downsample of the images), `disp` in its
     pixels; the depth limits and the speckle size and range, given for the full-size images,
     are scaled to it. `m`: the `margin`; `confidence`: the calibrated confidence (float32)
-    for `min_confidence`, None if there is none (then it is not applied).
+    for `min_confidence`, None if there is none (then it is not applied); `costs`: the
+    summed SGM costs for `background_ratio` (see `background_fits`), None: every pixel
+    below min_confidence goes.
     """
     f = cfg.downsample
     if cfg.valid_window:
@@ -207,7 +278,10 @@ def invalidate(disp, consistent, m, cfg, camera=None, confidence=None):
         with np.errstate(invalid='ignore'):
             disp[(disp < low) | (disp > high)] = np.nan
     if cfg.min_confidence and confidence is not None:
-        disp[confidence < cfg.min_confidence] = np.nan
+        unsure = confidence < cfg.min_confidence
+        if cfg.background_ratio and costs is not None:
+            unsure = background_fits(disp, unsure & np.isfinite(disp), costs, cfg)
+        disp[unsure] = np.nan
     size = cfg.speckle_size // f ** 2
     if size:
         disp[speckles(disp, size, cfg.speckle_range / f)] = np.nan

@@ -416,3 +416,14 @@ def winners(total, subpixel=False, lr_check=False, cancel=None):
     _wta(total, subpixel, 1 if lr_check else -1, out, consistent, s_best, s_second,
          flag_array(cancel))
     return out, consistent, s_best, s_second
+
+
+@njit(cache=True, nogil=True)
+def costs_at(total, rows, cols, disparities):
+    """Return total[rows[i], cols[i], disparities[i, j]], (n, k) of total's type."""
+    n, k = disparities.shape
+    out = np.empty((n, k), total.dtype)
+    for i in range(n):
+        for j in range(k):
+            out[i, j] = total[rows[i], cols[i], disparities[i, j]]
+    return out
