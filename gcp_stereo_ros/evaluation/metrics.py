@@ -2,33 +2,17 @@
 from numba import njit
 import numpy as np
 
+from ..stereo.postprocess import fill_rows
+
 THRESHOLDS = (1, 2, 3, 5)
 
 
 @njit(cache=True)
-def _fill(d):
-    """interpolate_background on a float64 copy, in place (invalid: not finite)."""
+def _fill_columns(d):
+    """Give each column's non-finite ends its nearest finite value, in place."""
     h, w = d.shape
-    for v in range(h):
-        count = 0
-        for u in range(w):
-            if np.isfinite(d[v, u]):
-                if count >= 1 and u - count > 0:  # a gap with a valid pixel on both sides
-                    fill = min(d[v, u - count - 1], d[v, u])
-                    d[v, u - count:u] = fill
-                count = 0
-            else:
-                count += 1
-        for u in range(w):  # extrapolate to the left
-            if np.isfinite(d[v, u]):
-                d[v, :u] = d[v, u]
-                break
-        for u in range(w - 1, -1, -1):  # and to the right
-            if np.isfinite(d[v, u]):
-                d[v, u + 1:] = d[v, u]
-                break
     for u in range(w):
-        for v in range(h):  # columns: extrapolate to the top
+        for v in range(h):  # to the top
             if np.isfinite(d[v, u]):
                 d[:v, u] = d[v, u]
                 break
@@ -48,7 +32,8 @@ def interpolate_background(disp):
     ends take its nearest valid value. Rows and columns without any valid pixel stay NaN.
     """
     d = np.array(disp, dtype=np.float64)
-    _fill(d)
+    fill_rows(d)
+    _fill_columns(d)
     return d
 
 

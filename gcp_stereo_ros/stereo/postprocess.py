@@ -193,29 +193,37 @@ def speckles(disp, size, max_diff):
 
 
 @njit(cache=True)
+def fill_rows(d):
+    """
+    Fill each row's non-finite pixels of `d` in place, as the KITTI devkit's interpolation does.
+
+    A gap between two finite pixels takes the smaller of their disparities (the background),
+    a gap at a row's end the one finite pixel beside it; a row without one stays as it is.
+    """
+    h, w = d.shape
+    for y in range(h):
+        last = -1  # the column of the last finite pixel
+        for x in range(w):
+            if not np.isfinite(d[y, x]):
+                continue
+            if last < x - 1:
+                d[y, last + 1:x] = d[y, x] if last < 0 else min(d[y, last], d[y, x])
+            last = x
+        if 0 <= last < w - 1:
+            d[y, last + 1:] = d[y, last]
+
+
 def backgrounds(disp, low):
     """
     Return each `low` pixel's background disparity, float32 (h, w), NaN elsewhere.
 
     The smaller disparity of the nearest pixels left and right in its row that are finite
-    and not `low` (at a row's end the one there is; NaN where its row has none).
+    and not `low` (at a row's end the one there is; NaN where its row has none): `fill_rows`
+    of the pixels that stay.
     """
-    h, w = disp.shape
-    out = np.full((h, w), np.nan, np.float32)
-    for y in range(h):
-        left = np.float32(np.inf)  # the last pixel that stays, left of x
-        start = 0  # the first low pixel since it
-        for x in range(w + 1):
-            stays = x < w and np.isfinite(disp[y, x]) and not low[y, x]
-            if x < w and not stays:
-                continue
-            b = min(left, disp[y, x]) if x < w else left
-            if np.isfinite(b):
-                for u in range(start, x):
-                    if low[y, u]:
-                        out[y, u] = b
-            if x < w:
-                left, start = disp[y, x], x + 1
+    out = np.where(low, np.float32(np.nan), disp).astype(np.float32)
+    fill_rows(out)
+    out[~low] = np.nan
     return out
 
 
