@@ -23,6 +23,20 @@ def ros():
     rclpy.shutdown()
 
 
+@pytest.fixture(scope='module')
+def net():
+    """Return the shipped CNN, loaded once per test module (torch only where it is used)."""
+    from gcp_stereo_ros.stereo.cnn import load_net
+    return load_net()
+
+
+@pytest.fixture(scope='module')
+def tsukuba(data_dir):
+    """Return Middlebury v2 tsukuba, a training frame of the shipped CNN."""
+    from gcp_stereo_ros.evaluation.datasets import load_frame
+    return load_frame(data_dir, 'middlebury_v2/tsukuba')
+
+
 @pytest.fixture(scope='session')
 def data_dir():
     """`../shared/data` beside the checkout; CI always has it, so its absence fails loudly."""

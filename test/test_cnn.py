@@ -4,8 +4,9 @@ from pathlib import Path
 
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.stereo.cnn import (_first_layer_bf16, calibrated, confidence, DEFAULT_WEIGHTS,
-                                       descriptors, device_confidence, GcpNet, load_net,
-                                       network_input, STRIP_ROWS)
+                                       descriptors, GcpNet, load_net, network_input,
+                                       STRIP_ROWS)
+from gcp_stereo_ros.stereo.cnn_cuda import device_confidence
 from gcp_stereo_ros.stereo.gcp import gcp_quality, select
 from gcp_stereo_ros.stereo.images import gray_pair, standardize
 from gcp_stereo_ros.tools import train
@@ -33,16 +34,6 @@ MIN_GAIN_OVER_WTA = 10.0
 # 0.11 either way: below the prediction in the low bins (0.2-0.4: 0.19 / 0.30), above it in
 # the high ones (0.6-0.8: 0.83 / 0.72). Both frames are held to 0.12.
 CALIBRATION_BINS = ((0.2, 0.4), (0.4, 0.6), (0.6, 0.8), (0.8, 1.0))
-
-
-@pytest.fixture(scope='module')
-def net():
-    return load_net()
-
-
-@pytest.fixture(scope='module')
-def tsukuba(data_dir):
-    return load_frame(data_dir, 'middlebury_v2/tsukuba')
 
 
 def test_confidence_streaming_equals_volume(net, tsukuba):
@@ -176,7 +167,7 @@ def test_shipped_weights_follow_the_split():
     train, val = ({family(n) for n in names} for names in (split['train'], split['validation']))
     assert not train & val and {'cones', 'motorcycle', '000070_10'}.isdisjoint(train)
     assert sum(n.startswith('kitti2015') for n in split['train']) >= 30  # road scenes
-    assert net.calibration is not None
+    assert net.calibrations[0] is not None
 
 
 def test_fit_calibration_recovers_a_known_probability():

@@ -203,18 +203,26 @@ def test_published_confidence_and_paper_preset(kitti):
 
 
 def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
-    """The fit tool writes one entry per downsample beside the weights it is given."""
-    from gcp_stereo_ros.stereo.cnn import DEFAULT_WEIGHTS
+    """
+    The fit tool writes one entry per downsample and filter radius beside the weights.
+
+    And for a radius > 0 the CNN calibration of that radius first, which theta reads.
+    """
+    from gcp_stereo_ros.stereo.cnn import DEFAULT_WEIGHTS, load_net
     from gcp_stereo_ros.tools import fit_confidence
     weights = tmp_path / 'net.pt'
     weights.write_bytes(DEFAULT_WEIGHTS.read_bytes())
     fit_confidence.main(['--dataset', str(data_dir), '--frames', 'kitti2015/000031_10',
                          'middlebury_v2/cones', '--downsample', '1', '2',
-                         '--weights', str(weights)])
+                         '--cnn-filter-radius', '0', '3', '--weights', str(weights)])
     cfg = StereoConfig(weights=str(weights))
     fits = [Confidence.load(cfg.replace(downsample=f)) for f in (1, 2, 4)]
     assert fits[0] is not None and fits[1] is not None and fits[2] is None  # 4 not fitted
     assert not np.array_equal(fits[0].coef, fits[1].coef)
+    filtered = Confidence.load(cfg.replace(cnn_filter_radius=3))
+    assert filtered is not None and not np.array_equal(filtered.coef, fits[0].coef)
+    assert Confidence.load(cfg.replace(cnn_filter_radius=4)) is None
+    assert set(load_net(weights).calibrations) == {0, 3}
     # each full-size pixel with ground truth is a sample, labelled by its own error
     frame = load_frame(data_dir, 'kitti2015/000031_10')
     config = StereoConfig(weights=str(weights), downsample=2, **UNFILTERED)

@@ -2,7 +2,6 @@
 from dataclasses import replace
 
 from gcp_stereo_ros.evaluation.datasets import load_frame
-from gcp_stereo_ros.stereo.cnn import load_net
 from gcp_stereo_ros.tools.train_crops import Augment, crop_scores, draw_crop, NEG_OFFSETS, views
 import numpy as np
 import pytest
@@ -16,11 +15,6 @@ NONE = {'scale': 1.0, 'shear': 0.0, 'vertical': 0.0, 'contrast': 1.0, 'brightnes
 def kitti(data_dir):
     view, = views(load_frame(data_dir, 'kitti2012/000070_10'))
     return view
-
-
-@pytest.fixture(scope='module')
-def net():
-    return load_net()
 
 
 def positives_win(net, view, aug, crops=12, hard=0.0):

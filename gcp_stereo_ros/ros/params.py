@@ -91,6 +91,9 @@ PARAMS = (
           'use_gcp'),
     Param('gcp_lr_check', _D.gcp_lr_check,
           "GCPs only where the right view's CNN disparity agrees within 1 px", 'gcp_lr_check'),
+    Param('cnn_filter_radius', _D.cnn_filter_radius,
+          'guided filter of the CNN confidence volume before the GCPs are taken from it, '
+          'windows of 2 r + 1 px, the left image as the guide (0 = off)', 'cnn_filter_radius'),
     Param('weights', _D.weights,
           "CNN weights file ('' = the weights shipped with the package)", 'weights'),
     Param('device', _D.device,
@@ -289,7 +292,8 @@ def config_warnings(pipeline):
     config = pipeline.config
     if config.use_gcp:
         from ..stereo.cnn import calibrated  # torch is loaded with the CNN anyway
-        top = float(calibrated(pipeline.net, np.ones(1, np.float32))[0])
+        top = float(calibrated(pipeline.net, np.ones(1, np.float32),
+                               config.cnn_filter_radius)[0])
         if config.theta >= top:
             return [f'theta {config.theta:g} selects no GCP: the CNN confidence is at most '
                     f'{top:.3g} with these weights, so every pixel gets c_hi at every '

@@ -20,17 +20,19 @@ the activations of a strip stay in the CPU caches (measured on a 2-core Zen 4 fo
 pair when first written: bf16 autocast convolutions 0.79 s for the whole images, 0.54 s in
 strips of 64 rows) and the descriptors of the whole images are never held (2 x 119 MB for
 a KITTI pair in float32).
-On a GPU (`device_confidence`) the same strips are correlated in torch on the device, as
-batched matrix products over blocks of columns (`_band_best`).
+On a GPU (`cnn_cuda.device_confidence`) the same strips are correlated in torch on the
+device, as batched matrix products over blocks of columns.
 
 Calibration: the raw cosine is high almost everywhere (most pixels score above 0.9), so a
 threshold on it says little. The weights file carries a monotone map, fitted on validation
 frames by the training tool, from the raw cosine to the probability that the CNN disparity
 is within 1 px of the truth; `confidence` returns that probability, so theta = 0.6 keeps
 the pixels whose CNN disparity is right with probability above 60 %. Weights without a map
-give the raw cosine.
+give the raw cosine. The guided-filtered confidence (`cnn_filter`) has calibrations of its
+own, one per radius, in the fits file beside the weights (`tools/fit_confidence.py`).
 """
 import functools
+import json
 from pathlib import Path
 import time
 
@@ -40,6 +42,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from . import cnn_filter
 from .cost import check_max_disp
 from .images import gray_pair, standardize
 
@@ -48,8 +51,8 @@ FEATURES = 64
 PAD = PATCH // 2
 EPS = 1e-8
 STRIP_ROWS = 64
-BAND_BLOCK = 128  # columns per block of `_band_best`
 DEFAULT_WEIGHTS = Path(__file__).parents[1] / 'weights' / 'gcp_cnn.pt'
+CALIBRATION_KEY = 'cnn_filter_radius='  # + the radius: a calibration's key in the fits file
 
 
 class GcpNet(nn.Module):
@@ -83,10 +86,13 @@ def load_net(path=None, device='cpu'):
     """
     Return a GcpNet in eval mode with the weights at `path` (default: the shipped weights).
 
-    The file holds {'state_dict': ..., 'meta': {...}} (see `gcp_stereo_ros.tools.train`).
-    Raises FileNotFoundError if it does not exist, ValueError if it cannot be read as such
-    or holds NaN or infinite weights.
+    The file holds {'state_dict': ..., 'meta': {...}, 'calibration': ...} (see
+    `gcp_stereo_ros.tools.train`); the calibrations of the guided-filtered confidence
+    (`cnn_filter`) are in the fits file beside it (`calibration_key`). Raises
+    FileNotFoundError if it does not exist, ValueError if it cannot be read as such, holds
+    NaN or infinite weights, or a calibration is invalid.
     """
+    from .postprocess import confidence_path
     path = Path(DEFAULT_WEIGHTS if path is None else path)
     if not path.is_file():
         raise FileNotFoundError(f'GCP CNN weights not found: {path}')
@@ -101,13 +107,29 @@ def load_net(path=None, device='cpu'):
         raise ValueError(f'GCP CNN weights file {path} holds NaN or infinite weights '
                          '(a diverged training run?)')
     net.meta = blob.get('meta', {})
-    net.calibration = _calibration(blob.get('calibration'), path)
+    net.path = path
+    net.calibrations = {0: _calibration(blob.get('calibration'), path)}
+    fits = confidence_path(str(path))
+    if fits.is_file():
+        try:
+            entries = json.loads(fits.read_text())
+        except (OSError, ValueError) as err:
+            raise ValueError(f'cannot read the confidence fits {fits}: {err}') from None
+        for key, entry in entries.items():
+            radius = key.removeprefix(CALIBRATION_KEY)
+            if key.startswith(CALIBRATION_KEY) and radius.isdigit():
+                net.calibrations[int(radius)] = _calibration(entry, fits)
     return net.to(device).eval()
+
+
+def calibration_key(radius):
+    """Return the key of the calibration of the confidence filtered with `radius` > 0."""
+    return f'{CALIBRATION_KEY}{radius}'
 
 
 def _calibration(stored, path):
     """
-    Return the (cosine, probability) knots of a weights file's calibration, or None.
+    Return the (cosine, probability) knots of a stored calibration, or None.
 
     Raises ValueError unless both are finite 1-D float arrays of one length >= 2, the cosines
     strictly increasing and the probabilities non-decreasing in [0, 1].
@@ -122,17 +144,27 @@ def _calibration(stored, path):
     except (KeyError, TypeError, ValueError):
         ok = False
     if not ok:
-        raise ValueError(f'GCP CNN weights file {path}: invalid confidence calibration')
+        raise ValueError(f'{path}: invalid CNN confidence calibration')
     return x, y
 
 
-def calibrated(net, cosine):
+def calibrated(net, cosine, radius=0):
     """
-    Map raw cosines through the net's calibration (identity without one), as float32.
+    Map raw confidences through the net's calibration for `radius`, as float32.
 
+    `radius`: of the guided filter the confidences come from (0: none). The weights' own
+    calibration serves 0 (the identity without one); a calibration of each radius > 0 is
+    fitted beside the weights (`tools/fit_confidence.py`), ValueError if there is none.
     `cosine`: a numpy array, or a tensor (mapped on its device as np.interp does, in float64).
     """
-    knots = getattr(net, 'calibration', None)
+    calibrations = getattr(net, 'calibrations', {0: None})
+    if radius not in calibrations:
+        where = getattr(net, 'path', 'the weights')
+        raise ValueError(f'no calibration of the CNN confidence filtered with '
+                         f'cnn_filter_radius {radius} beside {where}: '
+                         f'fit one (python -m gcp_stereo_ros.tools.fit_confidence '
+                         f'--cnn-filter-radius {radius}) or use cnn_filter_radius 0')
+    knots = calibrations[radius]
     if knots is None:
         return cosine
     if not isinstance(cosine, torch.Tensor):
@@ -329,70 +361,8 @@ def _first_layer_bf16(conv, x):
     return _conv_relu(conv, parts, weight, conv.bias.bfloat16())
 
 
-def _band_best(fa, fb, max_disp):
-    """
-    Return max_d and first argmax_d of <fa[:, x], fb[:, x - d]>, d < max_disp, as (R, W).
-
-    `fa`, `fb`: unit descriptors (R, W, C) on one device; cells with x - d < 0 count 0 and
-    dot products are capped at 1, as in `_best_match`. Each block of BAND_BLOCK columns of
-    `fa` is multiplied with the BAND_BLOCK + max_disp - 1 columns of `fb` it can see, all
-    blocks in one batched matrix product: (1 + BAND_BLOCK / max_disp) times the band's work.
-    """
-    r, w, c = fa.shape
-    nb = -(-w // BAND_BLOCK)
-    a = F.pad(fa, (0, 0, 0, nb * BAND_BLOCK - w)).view(r, nb, BAND_BLOCK, c)
-    seen = BAND_BLOCK + max_disp - 1
-    b = F.pad(fb, (0, 0, max_disp - 1, nb * BAND_BLOCK - w)).unfold(1, seen, BAND_BLOCK)
-    m = a @ b  # (r, nb, BAND_BLOCK, seen): column j holds fb at x - d for j = i + D - 1 - d
-    i = torch.arange(BAND_BLOCK, device=fa.device)
-    j = i[:, None] + (max_disp - 1) - torch.arange(max_disp, device=fa.device)
-    vol = m.gather(3, j.expand(r, nb, -1, -1)).view(r, nb * BAND_BLOCK, max_disp)[:, :w]
-    vol = vol.clamp_(max=1.0)
-    return vol.amax(2), vol.argmax(2)  # argmax: the first maximum
-
-
-def device_confidence(net, x, max_disp, bf16=False, seconds=None):
-    """
-    Return `confidence`'s (cof_c, cof_d, cof_dr) as tensors on the device of `x`.
-
-    `x`: the pair as `padded_input` makes it, on the net's device. Strip by strip, the
-    descriptors (`descriptors`, L2-normalized in float32) are correlated in torch there
-    (`_band_best`): the left view directly, the right view as the left view of the
-    mirrored pair. The result equals `confidence`'s within float rounding. `seconds`: as for
-    `confidence` (the device is synchronized at each stage's end).
-    """
-    h, w = x.shape[2] - 2 * PAD, x.shape[3] - 2 * PAD
-    check_max_disp(max_disp, w)
-    bf16 = resolve_bf16(bf16, x.device)
-    cof_c = torch.empty((h, w), dtype=torch.float32, device=x.device)
-    cof_d = torch.empty((h, w), dtype=torch.int32, device=x.device)
-    cof_dr = torch.empty((h, w), dtype=torch.int32, device=x.device)
-    seconds = {} if seconds is None else seconds
-    for stage in ('cnn', 'confidence'):
-        seconds.setdefault(stage, 0.0)
-    with torch.inference_mode():
-        for y0 in range(0, h, STRIP_ROWS):
-            y1 = min(y0 + STRIP_ROWS, h)
-            t = time.perf_counter()
-            f = F.normalize(descriptors(net, x[:, :, y0:y1 + 2 * PAD], bf16).float(), dim=3,
-                            eps=EPS)
-            _synchronize(x.device)
-            t1 = time.perf_counter()
-            cof_c[y0:y1], cof_d[y0:y1] = _band_best(f[0], f[1], int(max_disp))
-            cof_dr[y0:y1] = _band_best(f[1].flip(1), f[0].flip(1), int(max_disp))[1].flip(1)
-            _synchronize(x.device)
-            seconds['cnn'] += t1 - t
-            seconds['confidence'] += time.perf_counter() - t1
-    return calibrated(net, cof_c), cof_d, cof_dr
-
-
-def _synchronize(device):
-    if device.type == 'cuda':
-        torch.cuda.synchronize(device)
-
-
 def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=False, seconds=None,
-               cancel=None):
+               cancel=None, radius=0, scratch=None):
     """
     Return the CNN matching confidence of a rectified pair for disparities 0..max_disp-1.
 
@@ -401,17 +371,20 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     batch (see `descriptors`); `bf16` runs them in bfloat16 (3.5x faster on a CPU with
     AVX512-BF16), 'auto' where `bf16_native(device)`. On the CPU the L2 normalization
     (float32) and the correlation run in a numba kernel, strip by strip, streaming over d
-    without materializing the volume; on a GPU in torch there (`device_confidence`).
-    `seconds`: a dict that gains the wall time of the convolutions ('cnn') and of the
-    correlation ('confidence'). `cancel`: a CancelFlag, checked before each layer of each
-    strip on the CPU (raises Cancelled).
+    without materializing the volume; on a GPU in torch there (`cnn_cuda`). With
+    `radius` > 0 the volume of each strip is materialized and guided-filtered first
+    (`cnn_filter.StripFilter`, in `scratch` if given). `seconds`: a dict
+    that gains the wall time of the convolutions ('cnn') and of the correlation
+    ('confidence'). `cancel`: a CancelFlag, checked before each layer of each strip on the
+    CPU (raises Cancelled).
 
     Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1] mapped through the
-    net's calibration (`calibrated`; the raw cosine without one), int32 (H, W)
+    net's calibration for `radius` (`calibrated`; the raw value without one), int32 (H, W)
     argmax_d Vol, where Vol(y, x, d) = 0 for x - d < 0, and int32 (H, W) cof_dr, for each
     right pixel xr the argmax of Vol(y, xr + d, d) over d < min(max_disp, W - xr); first
-    maxima on ties. With `volume=True` also the float32 (H, W, max_disp) raw-cosine volume Vol
-    (memory-hungry; for tests and plots).
+    maxima on ties; Vol is the filtered volume with `radius`. With `volume=True` also the
+    float32 (H, W, max_disp) raw-cosine volume Vol, unfiltered (memory-hungry; for tests
+    and plots).
     """
     lg, rg = gray_pair(left, right)
     h, w = lg.shape
@@ -420,11 +393,16 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     bf16 = resolve_bf16(bf16, device)
     x = network_input(lg, rg).to(device)
     if x.device.type != 'cpu' and not volume:
-        return tuple(a.cpu().numpy() for a in device_confidence(net, x, max_disp, bf16, seconds))
+        from .cnn_cuda import device_confidence
+        return tuple(a.cpu().numpy()
+                     for a in device_confidence(net, x, max_disp, bf16, seconds, radius))
     cof_c = np.empty((h, w), np.float32)
     cof_d = np.empty((h, w), np.int32)
     cof_dr = np.empty((h, w), np.int32)
     vol = np.empty((h, w, max_disp), np.float32) if volume else None
+    if radius:
+        strips = cnn_filter.StripFilter(x[0, 0, PAD:PAD + h, PAD:PAD + w].cpu().numpy(), radius,
+                                        max_disp, STRIP_ROWS, cof_c, cof_d, cof_dr, scratch)
     seconds = {} if seconds is None else seconds
     for stage in ('cnn', 'confidence'):
         seconds.setdefault(stage, 0.0)
@@ -437,10 +415,14 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
         else:
             bits, shift = f.float().numpy().view(np.uint32), 0
         t1 = time.perf_counter()
-        _best_match(bits, shift, max_disp, cof_c[y0:y1], cof_d[y0:y1], cof_dr[y0:y1])
+        if radius:
+            _volume(bits, shift, strips.rows(y0, y1))
+            strips.filter_held()
+        else:
+            _best_match(bits, shift, max_disp, cof_c[y0:y1], cof_d[y0:y1], cof_dr[y0:y1])
         if volume:
             _volume(bits, shift, vol[y0:y1])
         seconds['cnn'] += t1 - t
         seconds['confidence'] += time.perf_counter() - t1
-    cof_c = calibrated(net, cof_c)
+    cof_c = calibrated(net, cof_c, radius)
     return (cof_c, cof_d, cof_dr, vol) if volume else (cof_c, cof_d, cof_dr)

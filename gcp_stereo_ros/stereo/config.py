@@ -34,7 +34,8 @@ PAPER = {
 UNFILTERED = {'valid_window': False, 'lr_check': False, 'uniqueness_ratio': 0.0,
               'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0, 'min_confidence': 0.0,
               'background_ratio': 0.0}
-PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False} for cost, values in PAPER.items()}
+PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False, 'cnn_filter_radius': 0}
+         for cost, values in PAPER.items()}
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
 DOWNSAMPLE = (1, 2, 4)
 BF16 = (True, False, 'auto')
@@ -47,6 +48,7 @@ RANGES = {
     'p1': (0.0, MAX_COST_PARAM),
     'p2': (0.0, MAX_COST_PARAM),
     'theta': (0.0, 1.0),
+    'cnn_filter_radius': (0, 8),
     'c_hi': (0.0, MAX_COST_PARAM),
     'c_low': (0.0, MAX_COST_PARAM),
     'uniqueness_ratio': (0.0, 99.0),
@@ -60,6 +62,9 @@ RANGES = {
 }
 # The only values of these fields.
 CHOICES = {'cost': cost_mod.COSTS, 'paths': PATHS, 'downsample': DOWNSAMPLE, 'bf16': BF16}
+# The fields the CNN's outputs (StereoResult cof_c, cof_d, cof_dr) depend on: a run may reuse
+# another's outputs (StereoPipeline's `confidence`) only where these are the same.
+CNN_FIELDS = ('weights', 'device', 'bf16', 'max_disp', 'downsample', 'cnn_filter_radius')
 FLAGS = ('use_gcp', 'gcp_lr_check', 'subpixel', 'median', 'valid_window', 'lr_check')
 DEVICE = re.compile(r'cpu|cuda(:\d+)?')
 
@@ -117,6 +122,11 @@ class StereoConfig:
     gcp_lr_check : bool
         GCPs only where the right view's CNN disparity agrees within 1 px (not in the
         paper).
+    cnn_filter_radius : int
+        Pixels of the matching grid: the CNN confidence volume is guided-filtered (the left
+        image as the guide, windows of 2 r + 1 px) before the GCPs' disparities and
+        confidences are taken from it (``stereo.cnn_filter``; not in the paper); in
+        [0, 8], 0 = off. Each radius has its own calibration beside the weights.
     weights : str
         Path of the CNN weights file; ``''`` is the weights shipped with the package.
     device : str
@@ -182,6 +192,7 @@ class StereoConfig:
     c_hi: float = COST_DEFAULTS['census']['c_hi']
     c_low: float = COST_DEFAULTS['census']['c_low']
     gcp_lr_check: bool = COST_DEFAULTS['census']['gcp_lr_check']
+    cnn_filter_radius: int = 0
     weights: str = ''
     device: str = 'cpu'
     # 'auto': see cnn.bf16_native; on the validation frames the defaults' error rates moved

@@ -77,8 +77,10 @@ def memory_bytes(cfg, height, width):
 
     At the matching resolution (H/downsample x W/downsample, D = matched_disp): the cost and
     path-sum volumes (H x W x D each, kept between frames) and the SGM sweep buffers (3 rows
-    of each path from above, W x D each), plus whichever needs more: the CNN's arrays with
-    one strip's activations (two images, 64 float32 maps of STRIP_ROWS + 8 rows), or
+    of each path from above, W x D each), with `cnn_filter_radius` the CNN filter's rows of
+    the volume (`cnn_filter.scratch_size`, kept as well), plus whichever needs more:
+    the CNN's arrays with one strip's activations (two images, 64 float32 maps of
+    STRIP_ROWS + 8 rows), or
     PIXEL_BYTES per pixel for the later stages; with downsample, FULL_PIXEL_BYTES per
     full-size pixel; or, if more, POST_PIXEL_BYTES per full-size pixel for the invalidation
     and confidence. Measured peaks stay below it (doc/failures.md).
@@ -99,6 +101,9 @@ def _memory_terms(cfg, height, width):
         from .cnn import FEATURES, PAD, STRIP_ROWS
         strip = 2 * FEATURES * (min(STRIP_ROWS, h) + 2 * PAD) * (w + 2 * PAD) * 4
         fixed = max(fixed, CNN_PIXEL_BYTES * h * w + STRIP_LAYERS * strip)
+        if cfg.cnn_filter_radius:  # cnn_filter.StripFilter's rows, kept as the volumes are
+            from .cnn_filter import scratch_size
+            per_disparity += 4 * scratch_size(h, w, 1, cfg.cnn_filter_radius, STRIP_ROWS)
     if f > 1:
         fixed += FULL_PIXEL_BYTES * height * width
     return max(fixed, POST_PIXEL_BYTES * height * width), per_disparity

@@ -12,12 +12,19 @@ import cv2
 import numpy as np
 
 from . import cost as cost_mod
+from .cnn_filter import scratch_size
 from .config import StereoConfig
 from .gcp import refine, select
 from .images import bin_area, gray_pair, mean_std, subsample, upsample
 from .memory import call_glibc, check_memory, volume_arithmetic
 from .postprocess import Confidence, features, invalidate, margin
 from .sgm import aggregate, costs_at, winners
+
+
+def filter_size(shape, max_disp, radius):
+    """Return the float32 values the CNN filter holds for a pair of `shape` (0 without it)."""
+    from .cnn import STRIP_ROWS  # torch is imported only when GCPs are used
+    return scratch_size(*shape, max_disp, radius, STRIP_ROWS) if radius else 0
 
 
 @dataclass
@@ -264,12 +271,19 @@ class StereoPipeline:
         scale, dtype, fixed = volume_arithmetic(cfg)
         # Kept arrays of another shape or type are let go now, before anything is allocated.
         kept = {name: self._array(name, shape, dtype) for name in ('cost', 'total')}
+        radius = cfg.cnn_filter_radius if cfg.use_gcp else 0
+        # The CNN filter's rows (cnn_filter.StripFilter), kept too; None (let go) without it.
+        scratch = self._array('cnn_filter', (filter_size(left.shape, nd, radius),), np.float32)
         gcp = cof_c = cof_d = cof_dr = None
         if cfg.use_gcp:
             if confidence is None:
                 from .cnn import confidence as cnn_confidence
+                if radius and scratch is None:
+                    scratch = np.empty(filter_size(left.shape, nd, radius), np.float32)
+                    self._workspace['cnn_filter'] = scratch
                 confidence = cnn_confidence(self.net, left, right, nd, cfg.device, cfg.bf16,
-                                            seconds=seconds, cancel=cancel)
+                                            seconds=seconds, cancel=cancel, radius=radius,
+                                            scratch=scratch)
                 lap(None)  # the CNN timed its own stages
             cof_c, cof_d, cof_dr = confidence
         volume = cost_mod.cost_volume(left, right, nd, cfg.cost, cfg.window, kept['cost'],
@@ -298,7 +312,8 @@ class StereoPipeline:
         import torch
 
         from . import gpu
-        from .cnn import device_confidence, padded_input
+        from .cnn import padded_input
+        from .cnn_cuda import device_confidence
         from .cost_cuda import cost_volume
         from .gcp_cuda import select_refine
         from .sgm_cuda import aggregate, winners
@@ -323,7 +338,7 @@ class StereoPipeline:
                 standardized = torch.stack([(g - m) / s for g, (m, s) in zip(pair, stats)])
             if cfg.use_gcp and confidence is None:
                 cof = device_confidence(self.net, padded_input(standardized), nd, cfg.bf16,
-                                        seconds)
+                                        seconds, cfg.cnn_filter_radius)
                 lap(None)  # the CNN timed its own stages
             volume = cost_volume(pair if cfg.cost == 'census' else standardized, nd, cfg.cost,
                                  cfg.window, self._array('cuda_cost', shape, vtype),

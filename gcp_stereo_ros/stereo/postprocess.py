@@ -136,10 +136,12 @@ def method_key(cfg):
     """
     Return the name of cfg's method as the confidence file keys it.
 
-    'census+gcp', 'sad', ...; matched at 1 / downsample with '@' and the factor appended
-    ('census+gcp@2'): each downsample has a fit of its own.
+    'census+gcp', 'sad', ...; with GCPs from the CNN volume filtered with radius r,
+    '+filter' and r appended; matched at 1 / downsample, '@' and the factor
+    ('census+gcp+filter4@2'): each has a fit of its own.
     """
     key = cfg.cost + ('+gcp' if cfg.use_gcp else '')
+    key += f'+filter{cfg.cnn_filter_radius}' if cfg.use_gcp and cfg.cnn_filter_radius else ''
     return key + (f'@{cfg.downsample}' if cfg.downsample > 1 else '')
 
 

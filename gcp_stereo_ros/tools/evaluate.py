@@ -103,7 +103,8 @@ class Runner:
             from ..stereo.cnn import confidence
             pipe = self.pipeline(cnn_method(method), max_disp)
             cfg = pipe.config
-            _, cof_d, _ = confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16)
+            _, cof_d, _ = confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16,
+                                     radius=cfg.cnn_filter_radius)
             return cof_d.astype(np.float32), None, time.perf_counter() - t
         result = self.pipeline(method, max_disp)(left, right)
         return result.disparity, result, time.perf_counter() - t

@@ -1,5 +1,11 @@
 r"""
-python -m gcp_stereo_ros.tools.fit_confidence: fit the confidence of the final disparity.
+python -m gcp_stereo_ros.tools.fit_confidence: fit the confidences beside the CNN weights.
+
+For each `--cnn-filter-radius` r > 0 first the calibration of the CNN confidence
+guided-filtered with it (stereo.cnn_filter), as the training tool fits the unfiltered one:
+P(CNN disparity within 1 px) of the filtered maximum (`train.fit_calibration`), written
+under cnn.calibration_key(r), which theta then reads. Then the confidence of the final
+disparity, for each method, downsample factor and radius.
 
 The confidence (stereo.postprocess.Confidence) is P(|d - truth| <= 3 px) of each pixel
 that the search did not cut short. Fitted on the validation frames only (each frame weighted
@@ -7,12 +13,13 @@ equally): a logistic regression of postprocess.FEATURES, then an isotonic map of
 (`train.fit_calibration`, as the CNN's confidence is calibrated). The pixels are those of
 each method's default pipeline that `valid_window` keeps (the features are those of the
 WTA disparity before any test), so the fit holds whatever other test is on. Writes one
-entry per method and downsample factor (postprocess.method_key) into the file beside the
-weights (postprocess.confidence_path), keeping the other entries.
+entry per method, downsample factor and radius (postprocess.method_key) into the file beside
+the weights (postprocess.confidence_path), keeping the other entries.
 
 The shipped fits (the manual, doc/published.md):
     python -m gcp_stereo_ros.tools.fit_confidence --dataset ../shared/data \
-        --split config/cnn_split.yaml --methods census+gcp --downsample 1 2 4
+        --split config/cnn_split.yaml --methods census+gcp --downsample 1 2 4 \
+        --cnn-filter-radius 0 1 2 3 4 5 6 7 8
 """
 import argparse
 import json
@@ -25,7 +32,7 @@ import yaml
 from .cli import console_main
 from .evaluate import Runner, select_frames
 from ..evaluation.datasets import load_frame
-from ..stereo.config import DOWNSAMPLE, UNFILTERED
+from ..stereo.config import DOWNSAMPLE, RANGES, UNFILTERED
 from ..stereo.images import subsample, upsample
 from ..stereo.postprocess import (Confidence, confidence_path, CONFIDENCE_PX, cut_short,
                                   FEATURES, features, method_key)
@@ -103,28 +110,48 @@ def main(argv=None):
     ap.add_argument('--downsample', nargs='+', type=int, default=[1], choices=DOWNSAMPLE,
                     help='fit for each of these downsample factors (each has its own fit)')
     ap.add_argument('--weights', default='', help="CNN weights ('' = the shipped ones)")
+    low, high = RANGES['cnn_filter_radius']
+    ap.add_argument('--cnn-filter-radius', type=int, nargs='+', default=[0], metavar='R',
+                    choices=range(low, high + 1),
+                    help=f'fit for each of these radii of the CNN filter ({low} to {high}; '
+                    'each r > 0 also gets its CNN calibration, fitted first)')
     args = ap.parse_args(argv)
 
     frames = [load_frame(source, name) for source, name in select_frames(
         args.dataset, split_frames(args.split) if args.split else args.frames)]
     path = confidence_path(args.weights)
     fits = json.loads(path.read_text()) if path.is_file() else {}
-    for factor in args.downsample:
-        runner = Runner(overrides={'weights': args.weights, 'downsample': factor, **UNFILTERED})
-        for method in args.methods:
-            parts = []
-            for frame in tqdm(frames, desc=method, unit='frame', leave=False):
-                _, result, _ = runner.run(method, frame.left, frame.right, frame.max_disp)
-                config = runner.config(method, frame.max_disp)
-                feats, correct = samples(result, config, frame.gt, frame.valid)
-                parts.append((feats, correct, np.full(len(correct), 1.0 / len(correct))))
-            model = fit(*(np.concatenate(a) for a in zip(*parts)))
-            key = method_key(config)
-            fits[key] = {'features': list(FEATURES), 'coef': model.coef.tolist(),
-                         'knots': [k.tolist() for k in model.knots],
-                         'frames': [frame.name for frame in frames]}
-            print(f'{key}: {len(frames)} frames, confidence from {model.knots[1][0]:.3f} '
-                  f'to {model.knots[1][-1]:.3f}')
+    for radius in args.cnn_filter_radius:
+        if radius:
+            from .train import calibration_samples, fit_calibration  # torch is loaded with them
+            from ..stereo.cnn import calibration_key, load_net
+            cosine, probability = fit_calibration(*calibration_samples(
+                load_net(args.weights or None), frames, radius))
+            fits[calibration_key(radius)] = {'cosine': cosine.tolist(),
+                                             'probability': probability.tolist(),
+                                             'frames': [frame.name for frame in frames]}
+            path.write_text(json.dumps(fits, indent=1) + '\n')  # the pipelines below read it
+            print(f'{calibration_key(radius)}: {len(frames)} frames, {len(cosine)} knots, '
+                  f'P(within 1 px) from {probability[0]:.3f} to {probability[-1]:.3f}')
+        for factor in args.downsample:
+            runner = Runner(overrides={'weights': args.weights, 'downsample': factor,
+                                       'cnn_filter_radius': radius, **UNFILTERED})
+            for method in args.methods:
+                if radius and not method.endswith('+gcp'):
+                    continue  # the filter is of the GCPs' CNN volume
+                parts = []
+                for frame in tqdm(frames, desc=method, unit='frame', leave=False):
+                    _, result, _ = runner.run(method, frame.left, frame.right, frame.max_disp)
+                    config = runner.config(method, frame.max_disp)
+                    feats, correct = samples(result, config, frame.gt, frame.valid)
+                    parts.append((feats, correct, np.full(len(correct), 1.0 / len(correct))))
+                model = fit(*(np.concatenate(a) for a in zip(*parts)))
+                key = method_key(config)
+                fits[key] = {'features': list(FEATURES), 'coef': model.coef.tolist(),
+                             'knots': [k.tolist() for k in model.knots],
+                             'frames': [frame.name for frame in frames]}
+                print(f'{key}: {len(frames)} frames, confidence from '
+                      f'{model.knots[1][0]:.3f} to {model.knots[1][-1]:.3f}')
     path.write_text(json.dumps(fits, indent=1) + '\n')
     print(f'wrote {path}')
 

@@ -28,6 +28,7 @@ from .cli import console_main, positive_int
 from .evaluate import FIELDS, parse_overrides, Runner, select_frames
 from ..evaluation.datasets import load_frame
 from ..evaluation.metrics import error_rates, sparsification, sparsification_area
+from ..stereo.config import CNN_FIELDS
 from ..stereo.gcp import gcp_quality
 
 matplotlib.use('Agg')
@@ -62,7 +63,7 @@ def sweep(args):
         frame = load_frame(source, name)
         max_disp = args.max_disp or frame.max_disp
         base = runner.pipeline(args.method, max_disp)
-        conf = None
+        outputs = {}  # the CNN's outputs of this frame per CNN_FIELDS, run once each
         for values in itertools.product(*grid.values()):
             point = dict(zip(grid, values))
             try:
@@ -71,11 +72,12 @@ def sweep(args):
                 invalid = err
                 continue
             pipe = base.with_config(config)
-            result = pipe(frame.left, frame.right, confidence=conf)
+            key = tuple(getattr(config, f) for f in CNN_FIELDS)
+            result = pipe(frame.left, frame.right, confidence=outputs.get(key))
             row = {'frame': name, **point,
                    'bad3': error_rates(result.disparity, frame.gt, frame.valid)['bad3']}
             if result.gcp is not None:
-                conf = (result.cof_c, result.cof_d, result.cof_dr)
+                outputs[key] = (result.cof_c, result.cof_d, result.cof_dr)
                 row['gcp_density'], row['gcp_accuracy'] = gcp_quality(
                     result.gcp, result.cof_d, frame.gt, frame.valid)
             rows.append(row)

@@ -137,18 +137,19 @@ def fit_calibration(cosine, correct, weight, bins=CALIBRATION_BINS):
     return x[keep], y[keep]
 
 
-def calibration_samples(net, frames):
+def calibration_samples(net, frames, radius=0):
     """
     Return (cosine, correct, weight) over the evaluated pixels of `frames`.
 
-    cosine: the raw CNN confidence; correct: the CNN disparity within 1 px of the truth;
-    weight: 1 / (the frame's evaluated pixels), so that every frame counts the same.
+    cosine: the raw CNN confidence (guided-filtered with `radius` > 0); correct: the CNN
+    disparity within 1 px of the truth; weight: 1 / (the frame's evaluated pixels), so that
+    every frame counts the same.
     """
-    net.calibration = None
+    net.calibrations = {radius: None}
     device = next(net.parameters()).device
     out = []
     for f in frames:
-        cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp, device)
+        cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp, device, radius=radius)
         sel = f.valid & np.isfinite(f.gt)
         correct = np.abs(cof_d[sel] - f.gt[sel]) <= CALIBRATION_PX
         out.append((cof_c[sel], correct.astype(np.float64), np.full(sel.sum(), 1.0 / sel.sum())))

@@ -1,0 +1,121 @@
+"""
+The CNN confidence on a GPU: the torch twin of `cnn`'s correlation kernels.
+
+The descriptors of each strip (`cnn.descriptors`, L2-normalized in float32) are correlated
+in torch on the device, as batched matrix products over blocks of BAND_BLOCK columns
+(`_band_volume`); without a filter the best disparities are taken from each strip's volume
+(`_band_best`; the right view as the left view of the mirrored pair), with one the strip's
+volume, with its halo of rows, is guided-filtered first (`filtered_best`, the twin of
+`cnn_filter.filtered_best`). The results equal `cnn.confidence`'s within float rounding.
+"""
+import time
+
+import torch
+import torch.nn.functional as F
+
+from . import cnn_filter
+from .cnn import calibrated, descriptors, EPS, PAD, resolve_bf16, STRIP_ROWS
+from .cost import check_max_disp
+
+BAND_BLOCK = 128  # columns per block of `_band_volume`
+
+
+def _band_volume(fa, fb, max_disp):
+    """
+    Return Vol(r, x, d) = <fa[r, x], fb[r, x - d]>, d < max_disp, as (R, W, max_disp).
+
+    `fa`, `fb`: unit descriptors (R, W, C) on one device; cells with x - d < 0 are 0 and
+    dot products are capped at 1, as in `cnn._best_match`. Each block of BAND_BLOCK columns
+    of `fa` is multiplied with the BAND_BLOCK + max_disp - 1 columns of `fb` it can see, all
+    blocks in one batched matrix product: (1 + BAND_BLOCK / max_disp) times the band's work.
+    """
+    r, w, c = fa.shape
+    nb = -(-w // BAND_BLOCK)
+    a = F.pad(fa, (0, 0, 0, nb * BAND_BLOCK - w)).view(r, nb, BAND_BLOCK, c)
+    seen = BAND_BLOCK + max_disp - 1
+    b = F.pad(fb, (0, 0, max_disp - 1, nb * BAND_BLOCK - w)).unfold(1, seen, BAND_BLOCK)
+    m = a @ b  # (r, nb, BAND_BLOCK, seen): column j holds fb at x - d for j = i + D - 1 - d
+    i = torch.arange(BAND_BLOCK, device=fa.device)
+    j = i[:, None] + (max_disp - 1) - torch.arange(max_disp, device=fa.device)
+    vol = m.gather(3, j.expand(r, nb, -1, -1)).view(r, nb * BAND_BLOCK, max_disp)[:, :w]
+    return vol.clamp_(max=1.0)
+
+
+def _band_best(fa, fb, max_disp):
+    """Return max_d and first argmax_d of `_band_volume`, (R, W) each."""
+    vol = _band_volume(fa, fb, max_disp)
+    return vol.amax(2), vol.argmax(2)  # argmax: the first maximum
+
+
+def device_confidence(net, x, max_disp, bf16=False, seconds=None, radius=0):
+    """
+    Return `cnn.confidence`'s (cof_c, cof_d, cof_dr) as tensors on the device of `x`.
+
+    `x`: the pair as `cnn.padded_input` makes it, on the net's device; `radius`: of the
+    guided filter (0: none). `seconds`: as for `cnn.confidence` (the device is synchronized
+    at each stage's end).
+    """
+    h, w = x.shape[2] - 2 * PAD, x.shape[3] - 2 * PAD
+    check_max_disp(max_disp, w)
+    bf16 = resolve_bf16(bf16, x.device)
+    cof_c = torch.empty((h, w), dtype=torch.float32, device=x.device)
+    cof_d = torch.empty((h, w), dtype=torch.int32, device=x.device)
+    cof_dr = torch.empty((h, w), dtype=torch.int32, device=x.device)
+    guide = x[0, 0, PAD:PAD + h, PAD:PAD + w]
+    seconds = {} if seconds is None else seconds
+    for stage in ('cnn', 'confidence'):
+        seconds.setdefault(stage, 0.0)
+    with torch.inference_mode():
+        for y0 in range(0, h, STRIP_ROWS):
+            y1 = min(y0 + STRIP_ROWS, h)
+            a, b = max(0, y0 - cnn_filter.halo(radius)), min(h, y1 + cnn_filter.halo(radius))
+            t = time.perf_counter()
+            f = F.normalize(descriptors(net, x[:, :, a:b + 2 * PAD], bf16).float(), dim=3,
+                            eps=EPS)
+            _synchronize(x.device)
+            t1 = time.perf_counter()
+            if radius:
+                cof_c[y0:y1], cof_d[y0:y1], cof_dr[y0:y1] = filtered_best(
+                    _band_volume(f[0], f[1], int(max_disp)), guide[a:b], radius, y0 - a, y1 - y0)
+            else:
+                cof_c[y0:y1], cof_d[y0:y1] = _band_best(f[0], f[1], int(max_disp))
+                cof_dr[y0:y1] = _band_best(f[1].flip(1), f[0].flip(1), int(max_disp))[1].flip(1)
+            _synchronize(x.device)
+            seconds['cnn'] += t1 - t
+            seconds['confidence'] += time.perf_counter() - t1
+    return calibrated(net, cof_c, radius), cof_d, cof_dr
+
+
+def _synchronize(device):
+    if device.type == 'cuda':
+        torch.cuda.synchronize(device)
+
+
+def _means(x, radius):
+    """Return the window means of x (..., rows, W), each window clipped to x (`cnn_filter`)."""
+    return F.avg_pool2d(x, 2 * radius + 1, stride=1, padding=radius, count_include_pad=False)
+
+
+def filtered_best(vol, guide, radius, first, rows):
+    """
+    Return (cof_c raw, cof_d, cof_dr) of a strip, the torch twin of `cnn_filter.filtered_best`.
+
+    `vol`: the raw volume (rows with the halo, W, D) on the device, `guide` the standardized
+    left image's same rows (rows with the halo, W); the strip is rows first .. first + rows.
+    """
+    p = vol.permute(2, 0, 1)  # (D, rows, W): one image per disparity
+    mean_i, mean_ii = _means(torch.stack([guide, guide * guide]), radius)
+    var_i = (mean_ii - mean_i * mean_i).clamp_(min=0)
+    mean_p, mean_ip = _means(p, radius), _means(p * guide, radius)
+    a = (mean_ip - mean_i * mean_p) / (var_i + cnn_filter.EPS)
+    b = mean_p - a * mean_i
+    strip = slice(first, first + rows)
+    filtered = _means(a, radius)[:, strip] * guide[strip] + _means(b, radius)[:, strip]
+    nd, w = filtered.shape[0], filtered.shape[2]
+    xs, ds = torch.arange(w, device=vol.device), torch.arange(nd, device=vol.device)
+    filtered.masked_fill_((ds[:, None] > xs[None])[:, None], -torch.inf)  # x - d < 0
+    # The right view: Vol'(y, xr + d, d), -inf where xr + d leaves the image.
+    cols = xs[None] + ds[:, None]  # (D, W)
+    right = filtered.gather(2, cols.clamp(max=w - 1)[:, None].expand(-1, rows, -1))
+    right.masked_fill_((cols >= w)[:, None], -torch.inf)
+    return filtered.amax(0), filtered.argmax(0).int(), right.argmax(0).int()
