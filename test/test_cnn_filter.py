@@ -8,8 +8,9 @@ from gcp_stereo_ros.stereo import cnn_filter
 from gcp_stereo_ros.stereo.cnn import (calibrated, calibration_key, confidence, DEFAULT_WEIGHTS,
                                        load_net, network_input, PAD, STRIP_ROWS)
 from gcp_stereo_ros.stereo.cnn_cuda import device_confidence
-from gcp_stereo_ros.stereo.config import PRESETS, StereoConfig
+from gcp_stereo_ros.stereo.config import PRESETS, StereoConfig, UNFILTERED
 from gcp_stereo_ros.stereo.images import gray_pair
+from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from gcp_stereo_ros.stereo.postprocess import confidence_path
 import numpy as np
 import pytest
@@ -61,7 +62,8 @@ def test_confidence_filtered_equals_the_formula(net, tsukuba):
 
     150 rows: two full strips and a short one, so the rows carried between strips count;
     the disparities are compared where the formula's best is clear of every rival more than
-    1 px away (elsewhere float rounding may pick another of near-equal values).
+    1 px away (elsewhere float rounding may pick another of near-equal values). The right
+    view's disparities are the unfiltered ones, exactly.
     """
     left, right = tsukuba.left[:150], tsukuba.right[:150]
     assert 2 * STRIP_ROWS < 150 < 3 * STRIP_ROWS
@@ -76,12 +78,7 @@ def test_confidence_filtered_equals_the_formula(net, tsukuba):
     clear = clear_best(want)
     assert clear.mean() > 0.8
     assert (cof_d == want.argmax(2))[clear].mean() > 0.999
-    h, w, nd = want.shape
-    right_view = np.full((h, w, nd), -np.inf)  # Vol'(y, xr + d, d)
-    for d in range(nd):
-        right_view[:, :w - d, d] = want[:, d:, d]
-    clear = clear_best(right_view)
-    assert (cof_dr == right_view.argmax(2))[clear].mean() > 0.999
+    np.testing.assert_array_equal(cof_dr, confidence(net, left, right, 24)[2])
 
 
 def test_device_filter_equals_the_numba_kernels(net, tsukuba):
@@ -92,8 +89,8 @@ def test_device_filter_equals_the_numba_kernels(net, tsukuba):
         net, network_input(*gray_pair(left, right)), 24, radius=RADIUS)]
     assert [a.dtype for a in got] == [a.dtype for a in want]
     np.testing.assert_allclose(got[0], want[0], atol=1e-3)
-    for g, w in zip(got[1:], want[1:]):
-        assert (np.abs(g - w) > 1).mean() < 0.01
+    assert (np.abs(got[1] - want[1]) > 1).mean() < 0.01
+    assert (got[2] != want[2]).mean() < 1e-3  # unfiltered: ties within float rounding only
 
 
 def test_filter_makes_the_cnn_alone_far_better_on_unseen_kitti(net, data_dir):
@@ -148,3 +145,21 @@ def test_the_filter_is_off_by_default_and_in_the_paper_preset():
     assert all(values['cnn_filter_radius'] == 0 for values in PRESETS['paper'].values())
     with pytest.raises(ValueError, match=r'cnn_filter_radius must be an integer in \[0, 8\]'):
         StereoConfig(cnn_filter_radius=9)
+
+
+def test_filtered_gcps_cut_the_error_on_unseen_kitti(data_dir):
+    """
+    Census+GCP+SGM on KITTI 2012 000070 (never trained or tuned on), matching only.
+
+    Every pixel published, integer disparities (Table 1's scoring). Measured (fp32):
+    unfiltered 4.24 % wrong, 1.16 % of the published too near; r 4: 4.10 %, 1.02 % (bf16:
+    4.24 and 1.14 %, 4.09 and 1.00 %).
+    """
+    f = load_frame(data_dir, 'kitti2012/000070_10')
+    rates = []
+    for radius in (0, RADIUS):
+        cfg = StereoConfig(cnn_filter_radius=radius, subpixel=False, **UNFILTERED)
+        rates.append(error_rates(StereoPipeline(cfg)(f.left, f.right).disparity, f.gt, f.valid))
+    plain, filtered = rates
+    assert filtered['bad3'] < min(4.2, plain['bad3'] - 0.08), rates
+    assert filtered['near3_published'] < plain['near3_published'] - 0.05, rates

@@ -380,11 +380,11 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
 
     Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1] mapped through the
     net's calibration for `radius` (`calibrated`; the raw value without one), int32 (H, W)
-    argmax_d Vol, where Vol(y, x, d) = 0 for x - d < 0, and int32 (H, W) cof_dr, for each
-    right pixel xr the argmax of Vol(y, xr + d, d) over d < min(max_disp, W - xr); first
-    maxima on ties; Vol is the filtered volume with `radius`. With `volume=True` also the
-    float32 (H, W, max_disp) raw-cosine volume Vol, unfiltered (memory-hungry; for tests
-    and plots).
+    argmax_d Vol, where Vol(y, x, d) = 0 for x - d < 0 (with `radius` of the filtered
+    volume), and int32 (H, W) cof_dr, for each right pixel xr the argmax of
+    Vol(y, xr + d, d) over d < min(max_disp, W - xr) (always of the unfiltered volume);
+    first maxima on ties. With `volume=True` also the float32 (H, W, max_disp) raw-cosine
+    volume Vol, unfiltered (memory-hungry; for tests and plots).
     """
     lg, rg = gray_pair(left, right)
     h, w = lg.shape

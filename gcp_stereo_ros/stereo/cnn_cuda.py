@@ -98,7 +98,7 @@ def _means(x, radius):
 
 def filtered_best(vol, guide, radius, first, rows):
     """
-    Return (cof_c raw, cof_d, cof_dr) of a strip, the torch twin of `cnn_filter.filtered_best`.
+    Return (cof_c, cof_d, cof_dr) of a strip, the torch twin of `cnn_filter.filtered_best`.
 
     `vol`: the raw volume (rows with the halo, W, D) on the device, `guide` the standardized
     left image's same rows (rows with the halo, W); the strip is rows first .. first + rows.
@@ -114,8 +114,8 @@ def filtered_best(vol, guide, radius, first, rows):
     nd, w = filtered.shape[0], filtered.shape[2]
     xs, ds = torch.arange(w, device=vol.device), torch.arange(nd, device=vol.device)
     filtered.masked_fill_((ds[:, None] > xs[None])[:, None], -torch.inf)  # x - d < 0
-    # The right view: Vol'(y, xr + d, d), -inf where xr + d leaves the image.
+    # The right view, unfiltered: Vol(y, xr + d, d), -inf where xr + d leaves the image.
     cols = xs[None] + ds[:, None]  # (D, W)
-    right = filtered.gather(2, cols.clamp(max=w - 1)[:, None].expand(-1, rows, -1))
+    right = p[:, strip].gather(2, cols.clamp(max=w - 1)[:, None].expand(-1, rows, -1))
     right.masked_fill_((cols >= w)[:, None], -torch.inf)
     return filtered.amax(0), filtered.argmax(0).int(), right.argmax(0).int()
