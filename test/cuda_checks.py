@@ -255,11 +255,11 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
             np.testing.assert_allclose(got, want, rtol=1e-5)
         assert {'upload', 'cost', 'refine', 'sgm', 'wta', 'download'} <= set(result.seconds)
     own = pipe.with_config(StereoConfig.for_cost('census', max_disp=ND, paths=4, bf16=False,
-                                                 cnn_filter_radius=0, device='cuda'))(*crop)
+                                                 device='cuda'))(*crop)
     np.testing.assert_allclose(own.cof_c, cnn[0], atol=2e-5)  # as in test_cnn
     assert np.mean(own.cof_d != cnn[1]) < 0.01
     assert {'cnn', 'confidence'} <= set(own.seconds)
-    # the guided filter of the default (as in test_cnn_filter: near-ties may flip)
+    # with the CNN's guided filter (as in test_cnn_filter: near-ties may flip)
     cfg = StereoConfig(max_disp=ND, paths=4, bf16=False, cnn_filter_radius=4)
     filtered = pipe.with_config(cfg.replace(device='cuda'))(*crop)
     want = confidence(load_net(), *crop, ND, radius=cfg.cnn_filter_radius)

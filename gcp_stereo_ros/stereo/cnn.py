@@ -117,8 +117,8 @@ def load_net(path=None, device='cpu'):
             raise ValueError(f'cannot read the confidence fits {fits}: {err}') from None
         for key, entry in entries.items():
             radius = key.removeprefix(CALIBRATION_KEY)
-            if key.startswith(CALIBRATION_KEY) and radius.isdigit():
-                net.calibrations[int(radius)] = _calibration(entry, fits)
+            if key.startswith(CALIBRATION_KEY) and radius.isdigit() and int(radius) > 0:
+                net.calibrations[int(radius)] = _calibration(entry or {}, fits)
     return net.to(device).eval()
 
 
@@ -148,14 +148,13 @@ def _calibration(stored, path):
     return x, y
 
 
-def calibrated(net, cosine, radius=0):
+def calibration(net, radius):
     """
-    Map raw confidences through the net's calibration for `radius`, as float32.
+    Return the net's calibration knots for confidences filtered with `radius` (0: none).
 
-    `radius`: of the guided filter the confidences come from (0: none). The weights' own
-    calibration serves 0 (the identity without one); a calibration of each radius > 0 is
-    fitted beside the weights (`tools/fit_confidence.py`), ValueError if there is none.
-    `cosine`: a numpy array, or a tensor (mapped on its device as np.interp does, in float64).
+    The weights' own calibration serves 0 (None: the identity, weights without one); a
+    calibration of each radius > 0 is fitted beside the weights (`tools/fit_confidence.py`),
+    ValueError if there is none.
     """
     calibrations = getattr(net, 'calibrations', {0: None})
     if radius not in calibrations:
@@ -164,7 +163,17 @@ def calibrated(net, cosine, radius=0):
                          f'cnn_filter_radius {radius} beside {where}: '
                          f'fit one (python -m gcp_stereo_ros.tools.fit_confidence '
                          f'--cnn-filter-radius {radius}) or use cnn_filter_radius 0')
-    knots = calibrations[radius]
+    return calibrations[radius]
+
+
+def calibrated(net, cosine, radius=0):
+    """
+    Map raw confidences through the net's `calibration` for `radius`, as float32.
+
+    `cosine`: a numpy array, or a tensor (mapped on its device as np.interp does, in float64);
+    with `radius` the filtered maximum, on the cosine's scale.
+    """
+    knots = calibration(net, radius)
     if knots is None:
         return cosine
     if not isinstance(cosine, torch.Tensor):

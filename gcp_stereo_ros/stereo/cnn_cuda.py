@@ -68,15 +68,16 @@ def device_confidence(net, x, max_disp, bf16=False, seconds=None, radius=0):
     with torch.inference_mode():
         for y0 in range(0, h, STRIP_ROWS):
             y1 = min(y0 + STRIP_ROWS, h)
-            a, b = max(0, y0 - cnn_filter.halo(radius)), min(h, y1 + cnn_filter.halo(radius))
+            lo, hi = max(0, y0 - cnn_filter.halo(radius)), min(h, y1 + cnn_filter.halo(radius))
             t = time.perf_counter()
-            f = F.normalize(descriptors(net, x[:, :, a:b + 2 * PAD], bf16).float(), dim=3,
+            f = F.normalize(descriptors(net, x[:, :, lo:hi + 2 * PAD], bf16).float(), dim=3,
                             eps=EPS)
             _synchronize(x.device)
             t1 = time.perf_counter()
             if radius:
                 cof_c[y0:y1], cof_d[y0:y1], cof_dr[y0:y1] = filtered_best(
-                    _band_volume(f[0], f[1], int(max_disp)), guide[a:b], radius, y0 - a, y1 - y0)
+                    _band_volume(f[0], f[1], int(max_disp)), guide[lo:hi], radius, y0 - lo,
+                    y1 - y0)
             else:
                 cof_c[y0:y1], cof_d[y0:y1] = _band_best(f[0], f[1], int(max_disp))
                 cof_dr[y0:y1] = _band_best(f[1].flip(1), f[0].flip(1), int(max_disp))[1].flip(1)
@@ -107,7 +108,7 @@ def filtered_best(vol, guide, radius, first, rows):
     mean_i, mean_ii = _means(torch.stack([guide, guide * guide]), radius)
     var_i = (mean_ii - mean_i * mean_i).clamp_(min=0)
     mean_p, mean_ip = _means(p, radius), _means(p * guide, radius)
-    a = (mean_ip - mean_i * mean_p) / (var_i + cnn_filter.EPS)
+    a = (mean_ip - mean_i * mean_p) / (var_i + cnn_filter.GUIDE_EPS)
     b = mean_p - a * mean_i
     strip = slice(first, first + rows)
     filtered = _means(a, radius)[:, strip] * guide[strip] + _means(b, radius)[:, strip]

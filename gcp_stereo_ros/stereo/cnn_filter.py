@@ -15,14 +15,16 @@ were published more than 3 px too near, with this one 1.29 %, as unfiltered; doc
 Per slice, with I the left image standardized (`images.standardize`,
 what the CNN sees), p = Vol(., ., d) and mean() the mean over the window clipped to the image:
 
-    a = (mean(I p) - mean(I) mean(p)) / (var(I) + EPS),  b = mean(p) - a mean(I)
+    a = (mean(I p) - mean(I) mean(p)) / (var(I) + GUIDE_EPS),  b = mean(p) - a mean(I)
     Vol' = mean(a) I + mean(b)
 
 Cells with x - d < 0 have Vol = 0 (as in `cnn`) and take part in the means; they are never
 a best disparity. A row of Vol' reads 2r rows of Vol above and below it (`halo`). On the
-CPU `StripFilter` takes the raw volume strip by strip as `cnn.confidence` computes it,
-keeps the 4r rows the next strip's outputs read, and filters each row once
-(`filtered_best`); `cnn_cuda.filtered_best` is the torch twin.
+CPU `StripFilter` takes the raw volume strip by strip as `cnn.confidence` computes it and
+keeps the 4r rows the next strip's outputs read, so each raw row is computed once
+(`filtered_best`; 2r rows of coefficients at each strip's edge twice); `cnn_cuda.
+filtered_best` is the torch twin. The kernels are compiled with fastmath, which assumes no
+infinities: every maximum starts from a real value.
 """
 import numba
 from numba import njit, prange
@@ -31,7 +33,7 @@ import numpy as np
 # Of the guide's variance (1: the image is standardized). On the 14 validation frames a first
 # implementation (windows replicating the image's edge) gave Census+GCP 4.77, 4.76, 4.77 %
 # with 0.001, 0.01, 0.03 (radius 4, P2 128, every pixel published, integer disparities).
-EPS = 0.01
+GUIDE_EPS = 0.01
 
 
 def halo(radius):
@@ -90,24 +92,25 @@ def _across(col, x, radius, acc):
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def box_means(src, radius, out, blocks):
+def box_means(src, weight, radius, means, weighted, blocks):
     """
-    Write the window means of src (rows, W, k) into out.
+    Write the window means of src (rows, W, k) and of weight (rows, W) src into the two outs.
 
     Each window is (2 radius + 1)^2 px clipped to src's rows and columns; the rows go in
     `blocks` bands, each band's column sums slid down it.
     """
     n, w, k = src.shape
-    ones = np.ones((n, w), np.float32)
     for band in prange(blocks):
-        col, unused, acc = np.empty((w, k), np.float32), np.empty((w, k), np.float32), \
-            np.empty(k, np.float32)
+        col1, col2 = np.empty((w, k), np.float32), np.empty((w, k), np.float32)
+        acc1, acc2 = np.empty(k, np.float32), np.empty(k, np.float32)
         for y in range(band * n // blocks, (band + 1) * n // blocks):
-            rows = _slide(n, radius, y, y == band * n // blocks, src, src, ones, col, unused)
+            rows = _slide(n, radius, y, y == band * n // blocks, src, src, weight, col1, col2)
             for x in range(w):
-                inv = np.float32(1.0) / np.float32(rows * _across(col, x, radius, acc))
+                _across(col2, x, radius, acc2)
+                inv = np.float32(1.0) / np.float32(rows * _across(col1, x, radius, acc1))
                 for c in range(k):
-                    out[y, x, c] = acc[c] * inv
+                    means[y, x, c] = acc1[c] * inv
+                    weighted[y, x, c] = acc2[c] * inv
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
@@ -126,7 +129,7 @@ def _coefficients(vol, guide, mean_i, var_i, radius, first, a, b, blocks):
                 _across(col_ip, x, radius, acc_ip)
                 inv_n = np.float32(1.0) / np.float32(count * _across(col_p, x, radius, acc_p))
                 mi = mean_i[y, x]
-                inv = np.float32(1.0) / (var_i[y, x] + np.float32(EPS))
+                inv = np.float32(1.0) / (var_i[y, x] + np.float32(GUIDE_EPS))
                 for d in range(nd):
                     mp = acc_p[d] * inv_n
                     ai = (acc_ip[d] * inv_n - mi * mp) * inv
@@ -152,13 +155,13 @@ def _best(a, b, raw, guide, radius, first, cof_c, cof_d, cof_dr, blocks):
         for i in range(band * rows // blocks, (band + 1) * rows // blocks):
             y = first + i
             count = _slide(n, radius, y, i == band * rows // blocks, a, b, ones, col_a, col_b)
-            right_best[:] = -np.inf
+            right_best[:] = -1.0  # below every raw cosine
             right_arg[:] = 0
             for x in range(w):
                 _across(col_b, x, radius, acc_b)
                 inv_n = np.float32(1.0) / np.float32(count * _across(col_a, x, radius, acc_a))
                 g = guide[y, x] * inv_n
-                best = np.float32(-np.inf)
+                best = acc_a[0] * g + acc_b[0] * inv_n
                 arg = 0
                 for d in range(min(nd, x + 1)):
                     v = acc_a[d] * g + acc_b[d] * inv_n
@@ -178,10 +181,10 @@ def _best(a, b, raw, guide, radius, first, cof_c, cof_d, cof_dr, blocks):
 def guide_stats(guide, radius):
     """Return the window means of I and its variance, float32 (H, W) each, of the guide I."""
     g = np.ascontiguousarray(guide, np.float32)
-    stack = np.stack([g, g * g], axis=-1)
-    means = np.empty_like(stack)
-    box_means(stack, radius, means, _blocks())
-    return means[..., 0].copy(), np.maximum(means[..., 1] - means[..., 0] ** 2, 0)
+    mean, square = np.empty(g.shape + (1,), np.float32), np.empty(g.shape + (1,), np.float32)
+    box_means(g[..., None], g, radius, mean, square, _blocks())
+    mean = mean[..., 0]
+    return mean, np.maximum(square[..., 0] - mean * mean, 0)
 
 
 def filtered_best(vol, guide, stats, radius, first, cof_c, cof_d, cof_dr, work):
@@ -240,9 +243,9 @@ class StripFilter:
 
     def rows(self, y0, y1):
         """Return the (y1 - y0, W, D) array for the raw rows y0..y1 (y0: the last strip's end)."""
-        if self.end - self.top > self.carry:
-            kept = self.buffer[self.end - self.top - self.carry:self.end - self.top].copy()
-            self.buffer[:self.carry] = kept
+        if self.end - self.top > self.carry:  # (numpy copies overlapping rows right)
+            self.buffer[:self.carry] = self.buffer[self.end - self.top - self.carry:
+                                                   self.end - self.top]
             self.top = self.end - self.carry
         self.end = y1
         return self.buffer[y0 - self.top:y1 - self.top]

@@ -61,6 +61,9 @@ PIXEL_BYTES = 80
 # 741x500 fp32 the CNN's peak varied by up to 2.3 strips between pairs (20 pairs measured;
 # with four layers in all, a peak passed the bound in CI).
 CNN_PIXEL_BYTES = 28
+# With cnn_filter_radius, per pixel while the CNN runs: the guide, its window means and
+# variance and their temporaries (cnn_filter.guide_stats), float32.
+GUIDE_PIXEL_BYTES = 32
 STRIP_LAYERS = 8
 # With downsample > 1, per full-size pixel: the gray pair (8), the outputs blown up (17),
 # rounded up.
@@ -104,6 +107,8 @@ def _memory_terms(cfg, height, width):
         if cfg.cnn_filter_radius:  # cnn_filter.StripFilter's rows, kept as the volumes are
             from .cnn_filter import scratch_size
             per_disparity += 4 * scratch_size(h, w, 1, cfg.cnn_filter_radius, STRIP_ROWS)
+            fixed = max(fixed, (CNN_PIXEL_BYTES + GUIDE_PIXEL_BYTES) * h * w
+                        + STRIP_LAYERS * strip)
     if f > 1:
         fixed += FULL_PIXEL_BYTES * height * width
     return max(fixed, POST_PIXEL_BYTES * height * width), per_disparity

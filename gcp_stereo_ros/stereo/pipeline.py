@@ -23,8 +23,10 @@ from .sgm import aggregate, costs_at, winners
 
 def filter_size(shape, max_disp, radius):
     """Return the float32 values the CNN filter holds for a pair of `shape` (0 without it)."""
+    if not radius:
+        return 0
     from .cnn import STRIP_ROWS  # torch is imported only when GCPs are used
-    return scratch_size(*shape, max_disp, radius, STRIP_ROWS) if radius else 0
+    return scratch_size(*shape, max_disp, radius, STRIP_ROWS)
 
 
 @dataclass
@@ -138,13 +140,19 @@ class StereoPipeline:
 
     @property
     def net(self):
+        """
+        Return the CNN, loaded on first use.
+
+        ValueError if its weights have no calibration for the config's cnn_filter_radius.
+        """
+        from .cnn import calibration, load_net  # torch is imported only when GCPs are used
         if self._net is None:
-            from .cnn import load_net  # torch is imported only when GCPs are used
             device = self.config.device
             if device != 'cpu':
                 from .gpu import torch_device
                 device = torch_device(device)
             self._net = load_net(self.config.weights or None, device)
+        calibration(self._net, self.config.cnn_filter_radius)
         return self._net
 
     def __call__(self, left, right, confidence=None, cancel=None, camera=None):
