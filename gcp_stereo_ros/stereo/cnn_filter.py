@@ -179,10 +179,9 @@ def _best(a, b, raw, guide, radius, first, cof_c, cof_d, cof_dr, blocks):
 
 
 def guide_stats(guide, radius):
-    """Return the window means of I and its variance, float32 (H, W) each, of the guide I."""
-    g = np.ascontiguousarray(guide, np.float32)
-    mean, square = np.empty(g.shape + (1,), np.float32), np.empty(g.shape + (1,), np.float32)
-    box_means(g[..., None], g, radius, mean, square, _blocks())
+    """Return the window means of I and its variance, float32 (H, W) each, of I (float32)."""
+    mean, square = (np.empty(guide.shape + (1,), np.float32) for _ in range(2))
+    box_means(guide[..., None], guide, radius, mean, square, _blocks())
     mean = mean[..., 0]
     return mean, np.maximum(square[..., 0] - mean * mean, 0)
 
@@ -202,8 +201,8 @@ def filtered_best(vol, guide, stats, radius, first, cof_c, cof_d, cof_dr, work):
     size = (hi - lo) * vol.shape[1] * vol.shape[2]
     a, b = (work[k * size:(k + 1) * size].reshape((hi - lo,) + vol.shape[1:]) for k in (0, 1))
     _coefficients(vol, guide, *stats, radius, lo, a, b, _blocks())
-    _best(a, b, vol[first:first + cof_c.shape[0]], np.ascontiguousarray(guide[lo:hi]), radius,
-          first - lo, cof_c, cof_d, cof_dr, _blocks())
+    _best(a, b, vol[first:first + cof_c.shape[0]], guide[lo:hi], radius, first - lo, cof_c,
+          cof_d, cof_dr, _blocks())
 
 
 def scratch_size(height, width, max_disp, radius, strip_rows):
@@ -232,8 +231,9 @@ class StripFilter:
     def __init__(self, guide, radius, max_disp, strip_rows, cof_c, cof_d, cof_dr,
                  scratch=None):
         h, w = guide.shape
-        self.guide, self.radius, self.outputs = guide, radius, (cof_c, cof_d, cof_dr)
-        self.stats = guide_stats(guide, radius)
+        self.guide = np.ascontiguousarray(guide, np.float32)  # for every strip's kernels
+        self.radius, self.outputs = radius, (cof_c, cof_d, cof_dr)
+        self.stats = guide_stats(self.guide, radius)
         self.carry = 2 * halo(radius)  # the rows the next strip's first output reads above
         size = scratch_size(h, w, max_disp, radius, strip_rows)
         scratch = np.empty(size, np.float32) if scratch is None else scratch

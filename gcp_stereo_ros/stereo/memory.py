@@ -103,12 +103,11 @@ def _memory_terms(cfg, height, width):
     if cfg.use_gcp:
         from .cnn import FEATURES, PAD, STRIP_ROWS
         strip = 2 * FEATURES * (min(STRIP_ROWS, h) + 2 * PAD) * (w + 2 * PAD) * 4
-        fixed = max(fixed, CNN_PIXEL_BYTES * h * w + STRIP_LAYERS * strip)
+        pixel = CNN_PIXEL_BYTES + (GUIDE_PIXEL_BYTES if cfg.cnn_filter_radius else 0)
+        fixed = max(fixed, pixel * h * w + STRIP_LAYERS * strip)
         if cfg.cnn_filter_radius:  # cnn_filter.StripFilter's rows, kept as the volumes are
             from .cnn_filter import scratch_size
             per_disparity += 4 * scratch_size(h, w, 1, cfg.cnn_filter_radius, STRIP_ROWS)
-            fixed = max(fixed, (CNN_PIXEL_BYTES + GUIDE_PIXEL_BYTES) * h * w
-                        + STRIP_LAYERS * strip)
     if f > 1:
         fixed += FULL_PIXEL_BYTES * height * width
     return max(fixed, POST_PIXEL_BYTES * height * width), per_disparity

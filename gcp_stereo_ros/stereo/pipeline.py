@@ -281,13 +281,14 @@ class StereoPipeline:
         kept = {name: self._array(name, shape, dtype) for name in ('cost', 'total')}
         radius = cfg.cnn_filter_radius if cfg.use_gcp else 0
         # The CNN filter's rows (cnn_filter.StripFilter), kept too; None (let go) without it.
-        scratch = self._array('cnn_filter', (filter_size(left.shape, nd, radius),), np.float32)
+        size = filter_size(left.shape, nd, radius)
+        scratch = self._array('cnn_filter', (size,), np.float32)
         gcp = cof_c = cof_d = cof_dr = None
         if cfg.use_gcp:
             if confidence is None:
                 from .cnn import confidence as cnn_confidence
                 if radius and scratch is None:
-                    scratch = np.empty(filter_size(left.shape, nd, radius), np.float32)
+                    scratch = np.empty(size, np.float32)
                     self._workspace['cnn_filter'] = scratch
                 confidence = cnn_confidence(self.net, left, right, nd, cfg.device, cfg.bf16,
                                             seconds=seconds, cancel=cancel, radius=radius,

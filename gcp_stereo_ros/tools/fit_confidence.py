@@ -121,12 +121,13 @@ def main(argv=None):
         args.dataset, split_frames(args.split) if args.split else args.frames)]
     path = confidence_path(args.weights)
     fits = json.loads(path.read_text()) if path.is_file() else {}
+    net = None  # the CNN the calibrations are fitted with, loaded for the first radius > 0
     for radius in args.cnn_filter_radius:
         if radius:
             from .train import calibration_samples, fit_calibration  # torch is loaded with them
             from ..stereo.cnn import calibration_key, load_net
-            cosine, probability = fit_calibration(*calibration_samples(
-                load_net(args.weights or None), frames, radius))
+            net = net or load_net(args.weights or None)
+            cosine, probability = fit_calibration(*calibration_samples(net, frames, radius))
             fits[calibration_key(radius)] = {'cosine': cosine.tolist(),
                                              'probability': probability.tolist(),
                                              'frames': [frame.name for frame in frames]}
