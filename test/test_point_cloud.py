@@ -1,6 +1,5 @@
 """point_cloud_node with real rclpy: stereo_image_proc's interface, the stereo node's geometry."""
 import array
-import math
 import threading
 import time
 
@@ -11,7 +10,6 @@ from gcp_stereo_ros.ros.node import ros_data, RosTypes
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.point_cloud_node import PointCloudNode
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields
-from gcp_stereo_ros.ros.stamp_sync import StampSync, tolerance_ns
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest
@@ -25,25 +23,6 @@ from skimage import data
 from stereo_msgs.msg import DisparityImage
 
 F, BASELINE, CX_OFFSET = 210.0, 0.12, 2.5
-
-
-def test_stamp_sync_policies():
-    exact = StampSync('abc', queue_size=2)
-    assert exact.add('a', 10, 'a10') is None and exact.add('b', 10, 'b10') is None
-    assert exact.add('c', 11, 'c11') is None  # no 11 elsewhere
-    assert exact.add('c', 10, 'c10') == {'a': 'a10', 'b': 'b10', 'c': 'c10'}
-    assert exact.dropped == 0 and exact.add('a', 12, 'a12') is None
-    for stamp in (13, 14):  # queue_size 2: a12 goes
-        exact.add('a', stamp, f'a{stamp}')
-    assert exact.dropped == 1
-    close = StampSync('ab', tolerance_ns=tolerance_ns(True, 0.002))  # ApproximateEpsilonTime
-    assert close.add('a', 1_000_000, 1) is None and close.add('b', 4_000_000, 2) is None
-    assert close.add('b', 2_500_000, 3) == {'a': 1, 'b': 3}
-    assert close.dropped == 0  # b at 4 ms is newer than the set: it waits
-    closest = StampSync('ab', tolerance_ns=tolerance_ns(True, 0.0))  # ApproximateTime
-    assert closest.tolerance_ns == math.inf and tolerance_ns(False, 0.5) == 0
-    closest.add('a', 0, 'a')
-    assert closest.add('b', 10**9, 'b') == {'a': 'a', 'b': 'b'}
 
 
 def infos(shape, p_zero=False):

@@ -239,7 +239,7 @@ class GcpStereoNode(Node):
             self.get_logger().info(
                 f'{self.processed} pairs processed; last {n}: ms per stage {stages}; '
                 f'input taken {pairs_in:.1f} pairs/s; dropped stale {self.stale}, '
-                f'unmatched left {sync.dropped_left} right {sync.dropped_right}, '
+                f'unmatched left {sync.dropped["left"]} right {sync.dropped["right"]}, '
                 f'errors {self.errors}')
             self._window = {'start': time.monotonic(), 'received': received, 'seconds': {}}
 

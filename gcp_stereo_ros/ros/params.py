@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .sync import PairSync
+from .sync import SIDES, StampSync, tolerance_ns
 from ..stereo.config import CHOICES, COST_DEFAULTS, range_text, RANGES, StereoConfig
 from ..stereo.cost import COSTS, WINDOWS
 from ..stereo.memory import MIB
@@ -153,7 +153,8 @@ PARAMS = (
     Param('approximate_sync', False,
           'pair left/right images whose stamps differ by at most the tolerance'),
     Param('approximate_sync_tolerance_seconds', 0.0,
-          'largest stamp difference of an approximate pair', range=(0.0, 10.0, 0.0)),
+          'largest stamp difference of an approximate pair (0: the closest stamps, as '
+          "message_filters' ApproximateTime)", range=(0.0, 10.0, 0.0)),
     Param('queue_size', 5, 'images kept per side while waiting for the twin (at most '
           'memory_limit_mb / 4 of them in bytes)', range=(1, 1000, 1)),
     Param('use_color', True, "points2 carries the left image's colour in an rgb field"),
@@ -280,11 +281,11 @@ def uncrossed(values):
 
 
 def make_sync(values):
-    """Build the PairSync that ROS-named parameter values ask for (defaults for missing ones)."""
+    """Build the images' StampSync the ROS-named parameter values ask for (defaults if missing)."""
     queue_size, approximate, tolerance, memory_limit_mb = (
         values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS)
-    return PairSync(queue_size, approximate, tolerance,
-                    memory_limit_mb * MIB // QUEUE_SHARE)
+    return StampSync(SIDES, queue_size, tolerance_ns(approximate, tolerance),
+                     memory_limit_mb * MIB // QUEUE_SHARE)
 
 
 def config_warnings(pipeline):

@@ -29,7 +29,7 @@ from .messages import stamp_ns
 from .node import main as node_main, ros_data, RosTypes
 from .pointcloud import disparity_of, geometry_messages
 from .rosimage import message_to_array
-from .stamp_sync import StampSync, tolerance_ns
+from .sync import StampSync, tolerance_ns
 
 NAME = 'point_cloud_node'
 LOG_PERIOD = 30.0  # seconds between two logs of the same text (stereo_image_proc: 30 s)

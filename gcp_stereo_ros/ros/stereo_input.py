@@ -163,8 +163,7 @@ class StereoInput:
         """Hand the waiting pair on once its camera_info is here (or `force`: anyway)."""
         if self._waiting is None:
             return
-        stamp, left, right = self._waiting
-        stamps = {'left': stamp_ns(left.header), 'right': stamp_ns(right.header)}
+        stamps = {side: stamp_ns(msg.header) for side, msg in self._waiting.items()}
         if stamps not in self._recent:
             self._recent = self._recent[-9:] + [stamps]
         info = self.infos.match(stamps)
@@ -173,16 +172,16 @@ class StereoInput:
             if wait:
                 self._log('warn', 'no camera_info stamped as the images (within the sync '
                           'tolerance) came before the next pair: using the newest ones',
-                          f'stamp {stamp} ns')
+                          f'stamp {stamps["left"]} ns')
             info = dict(self.infos.newest)
         if info is not None:
-            self._waiting = None
-            self._on_pair(stamp, left, right, info)
+            pair, self._waiting = self._waiting, None
+            self._on_pair(stamps['left'], pair['left'], pair['right'], info)
 
     def _on_info(self, side, msg):
         stamp = stamp_ns(msg.header)
         self.infos.add(side, stamp, msg)
-        tolerance = self.sync.tolerance_ns
+        tolerance = self.infos.tolerance_ns
         self._stamped |= any(abs(s[side] - stamp) <= tolerance for s in self._recent)
         self._release()
         if msg.width * msg.height > self._segment:  # even as mono8

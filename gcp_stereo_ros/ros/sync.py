@@ -1,9 +1,12 @@
 """
-Left/right stereo pairing by header stamp, a ROS-free stand-in for message_filters.
+One message of each of several topics by header stamp, a ROS-free stand-in for message_filters.
 
-Shared by the node and the offline rosbag tools. For two inputs it behaves like
-message_filters' ExactTime policy (approximate=False: identical stamps) or a simplified
-ApproximateTime policy (approximate=True: stamps at most `tolerance` seconds apart).
+Shared by the node (left and right images), point_cloud_node (its four inputs) and the
+offline rosbag tools. Its policies are message_filters' as stereo_image_proc's nodes choose
+them (`tolerance_ns`): ExactTime (identical stamps), ApproximateEpsilonTime (stamps at most
+a tolerance apart) or, with approximate sync and a tolerance of 0, ApproximateTime (the
+closest stamps), simplified: a set is complete as soon as the message just added finds, on
+every other topic, the queued message closest to its stamp within the tolerance.
 """
 import bisect
 import math
@@ -11,122 +14,143 @@ import math
 SIDES = ('left', 'right')
 
 
-class PairSync:
+def tolerance_ns(approximate, tolerance_seconds):
     """
-    Pair left and right messages by stamp; stamps may arrive out of order.
+    Return StampSync's tolerance for stereo_image_proc's two sync parameters.
 
-    A message is paired as soon as the other side holds a message within tolerance (the
-    closest one, the older one on a tie), so keep `tolerance` below half the frame period.
-    Each side queues at most `queue_size` unpaired messages and, beyond its newest one, at
-    most `max_bytes` of them (None = no byte bound; `add` is told each message's size); the
+    Not approximate: 0 (identical stamps); approximate with a tolerance of 0: math.inf (the
+    closest stamps, ApproximateTime); else the tolerance in nanoseconds.
+    """
+    if not 0 <= tolerance_seconds < math.inf:
+        raise ValueError(f'the tolerance must be a finite number of seconds >= 0, '
+                         f'got {tolerance_seconds!r}')
+    if not approximate:
+        return 0
+    return round(tolerance_seconds * 1e9) if tolerance_seconds > 0 else math.inf
+
+
+class StampSync:
+    """
+    Match one message of each of `names` by stamp (integer ns); stamps may arrive out of order.
+
+    A message completes a set as soon as every other topic holds a message within
+    `tolerance_ns` of its stamp (0: identical stamps; math.inf: any), the closest one, the
+    older one on a tie; so keep a finite tolerance below half the frame period. Each topic
+    queues at most `queue_size` unmatched messages and, beyond its newest one, at most
+    `max_bytes` of them (None = no byte bound; `add` is told each message's size); the
     oldest stamp goes first.
-    Emitting a pair discards, per side, every queued message stamped at or before the
-    paired one: a newer pair won, so they can never be used. A later arrival stamped at or
-    before the last pair is held aside (the newest one per side): from one side alone it is
-    a straggler, discarded at the next pair; once both sides have sent one, the stream went
-    back in time (a looped bag replaying its stamps, even a one-frame bag repeating one
-    stamp; a camera reset): the queues are cleared and pairing starts afresh with the two
-    held messages. `tolerance` is ignored when exact.
+    A set discards, per topic, every queued message stamped at or before its own: a newer
+    set won, so they can never be used. A later arrival stamped at or before the last set
+    is held aside (the newest one per topic): from some topics only it is a straggler,
+    discarded at the next set; once every topic has sent one, the stream went back in time
+    (a looped bag replaying its stamps, even a one-frame bag repeating one stamp; a camera
+    reset): the queues are cleared and matching starts afresh with the held messages.
 
-    Counters: `pairs`, `dropped_left`, `dropped_right` (messages discarded unpaired).
+    Counters: `sets`; `dropped` {name: messages discarded unmatched}.
     """
 
-    def __init__(self, queue_size=10, approximate=False, tolerance=0.0, max_bytes=None):
+    def __init__(self, names, queue_size=5, tolerance_ns=0, max_bytes=None):
         if isinstance(queue_size, bool) or not isinstance(queue_size, int) or queue_size < 1:
             raise ValueError(f'queue_size must be an integer >= 1, got {queue_size!r}')
-        if not 0 <= tolerance < math.inf:
-            raise ValueError(
-                f'tolerance must be a finite number of seconds >= 0, got {tolerance!r}')
+        if not tolerance_ns >= 0:
+            raise ValueError(f'tolerance_ns must be >= 0, got {tolerance_ns!r}')
         if max_bytes is not None and not (isinstance(max_bytes, int) and max_bytes > 0):
             raise ValueError(f'max_bytes must be None or an integer > 0, got {max_bytes!r}')
+        self.names = tuple(names)
         self.queue_size = queue_size
+        self.tolerance_ns = tolerance_ns
         self.max_bytes = max_bytes
-        self.tolerance_ns = round(tolerance * 1e9) if approximate else 0
-        self.pairs = 0
-        self.dropped_left = 0
-        self.dropped_right = 0
-        self._stamps = {side: [] for side in SIDES}  # ascending stamps, parallel to _msgs
-        self._msgs = {side: [] for side in SIDES}
-        self._sizes = {side: [] for side in SIDES}  # bytes of each queued message
-        self._last = {side: None for side in SIDES}  # stamps of the last emitted pair
-        self._back = {side: None for side in SIDES}  # (stamp, msg, size) at or before _last
-        self._streak = {side: 0 for side in SIDES}
+        self.sets = 0
+        self.dropped = dict.fromkeys(self.names, 0)
+        self._stamps = {name: [] for name in self.names}  # ascending, parallel to _msgs
+        self._msgs = {name: [] for name in self.names}
+        self._sizes = {name: [] for name in self.names}  # bytes of each queued message
+        self._last = dict.fromkeys(self.names)  # the stamps of the last set
+        self._back = dict.fromkeys(self.names)  # (stamp, msg, size) at or before _last
+        self._streak = dict.fromkeys(self.names, 0)
 
-    def add(self, side, stamp_ns, msg, size=0):
+    def add(self, name, stamp_ns, msg, size=0):
         """
-        Queue `msg` (of `size` bytes) of `side`; return (stamp_left_ns, left_msg, right_msg).
+        Queue `msg` (of `size` bytes) of topic `name`; return {name: message} of a set.
 
-        Return None while it waits for its twin.
+        Return None while the set is incomplete.
         """
-        other = other_side(side)
-        if self._last[side] is None or stamp_ns > self._last[side]:
-            return self._add(side, other, stamp_ns, msg, size)
-        if self._back[side] is not None:
-            self._drop(side, 1)
-        self._back[side] = stamp_ns, msg, size
-        if self._back[other] is None:
+        self._check(name)
+        if self._last[name] is None or stamp_ns > self._last[name]:
+            return self._add(name, stamp_ns, msg, size)
+        if self._back[name] is not None:
+            self._drop(name, 1)
+        self._back[name] = stamp_ns, msg, size
+        if None in self._back.values():
             return None
-        back = self._back  # both sides went back: a new stream
-        self._back = {s: None for s in SIDES}
-        self._last = {s: None for s in SIDES}
-        for s in SIDES:
-            self._discard_upto(s, math.inf)
-        self._add(other, side, *back[other])
-        return self._add(side, other, *back[side])
+        back = self._back  # every topic went back: a new stream
+        self._back = dict.fromkeys(self.names)
+        self._last = dict.fromkeys(self.names)
+        for other in self.names:
+            self._discard_first(other, len(self._stamps[other]))
+        for other in self.names:
+            if other != name:
+                self._add(other, *back[other])
+        return self._add(name, *back[name])
 
-    def _add(self, side, other, stamp_ns, msg, size):
-        stamps = self._stamps[other]
-        lo = bisect.bisect_left(stamps, stamp_ns - self.tolerance_ns)
-        hi = bisect.bisect_right(stamps, stamp_ns + self.tolerance_ns)
-        if lo == hi:
-            i = bisect.bisect_right(self._stamps[side], stamp_ns)
-            self._stamps[side].insert(i, stamp_ns)
-            self._msgs[side].insert(i, msg)
-            self._sizes[side].insert(i, size)
-            while len(self._stamps[side]) > 1 and (
-                    len(self._stamps[side]) > self.queue_size
-                    or (self.max_bytes is not None and sum(self._sizes[side]) > self.max_bytes)):
-                self._discard_first(side, 1)
-            return None
-        j = min(range(lo, hi), key=lambda k: abs(stamps[k] - stamp_ns))
-        match_stamp, match = stamps.pop(j), self._msgs[other].pop(j)
-        del self._sizes[other][j]
-        self._discard_upto(side, stamp_ns)
-        self._discard_upto(other, match_stamp)
-        for s in SIDES:  # stragglers
-            if self._back[s] is not None:
-                self._back[s] = None
-                self._drop(s, 1)
-        self._last[side], self._last[other] = stamp_ns, match_stamp
-        self._streak = {s: 0 for s in SIDES}
-        self.pairs += 1
-        if side == 'left':
-            return stamp_ns, msg, match
-        return match_stamp, match, msg
-
-    def unmatched_streak(self, side):
+    def unmatched_streak(self, name):
         """
-        Return the number of messages of `side` discarded unpaired since the last pair.
+        Return the number of messages of `name` discarded unmatched since the last set.
 
-        Growth means its twin goes missing.
+        Growth means its twins go missing.
         """
-        other_side(side)
-        return self._streak[side]
+        self._check(name)
+        return self._streak[name]
 
-    def _discard_upto(self, side, stamp_ns):
-        self._discard_first(side, bisect.bisect_right(self._stamps[side], stamp_ns))
+    def _add(self, name, stamp_ns, msg, size):
+        picks = {}
+        for other in self.names:
+            stamps = self._stamps[other]
+            lo = bisect.bisect_left(stamps, stamp_ns - self.tolerance_ns)
+            hi = bisect.bisect_right(stamps, stamp_ns + self.tolerance_ns)
+            if other == name:
+                continue
+            if lo == hi:
+                self._queue(name, stamp_ns, msg, size)
+                return None
+            picks[other] = min(range(lo, hi), key=lambda k: abs(stamps[k] - stamp_ns))
+        out, last = {name: msg}, {name: stamp_ns}
+        for other, j in picks.items():
+            last[other] = self._stamps[other].pop(j)
+            out[other] = self._msgs[other].pop(j)
+            del self._sizes[other][j]
+        for other in self.names:
+            self._discard_first(other, bisect.bisect_right(self._stamps[other], last[other]))
+            if self._back[other] is not None:  # a straggler
+                self._back[other] = None
+                self._drop(other, 1)
+        self._last = last
+        self._streak = dict.fromkeys(self.names, 0)
+        self.sets += 1
+        return {other: out[other] for other in self.names}
 
-    def _discard_first(self, side, n):
+    def _queue(self, name, stamp_ns, msg, size):
+        i = bisect.bisect_right(self._stamps[name], stamp_ns)
+        self._stamps[name].insert(i, stamp_ns)
+        self._msgs[name].insert(i, msg)
+        self._sizes[name].insert(i, size)
+        while len(self._stamps[name]) > 1 and (
+                len(self._stamps[name]) > self.queue_size
+                or (self.max_bytes is not None and sum(self._sizes[name]) > self.max_bytes)):
+            self._discard_first(name, 1)
+
+    def _discard_first(self, name, n):
         for queue in (self._stamps, self._msgs, self._sizes):
-            del queue[side][:n]
-        self._drop(side, n)
+            del queue[name][:n]
+        self._drop(name, n)
 
-    def _drop(self, side, n):
-        self._streak[side] += n
-        if side == 'left':
-            self.dropped_left += n
-        else:
-            self.dropped_right += n
+    def _drop(self, name, n):
+        self._streak[name] += n
+        self.dropped[name] += n
+
+    def _check(self, name):
+        if name not in self._last:
+            raise ValueError(f'no topic {name!r}; the topics: {", ".join(map(repr, self.names))}')
 
 
 def other_side(side):
@@ -140,12 +164,13 @@ class CameraInfos:
     The recent camera_info messages of each side, by stamp, to pair each image with its own.
 
     As image_transport's camera subscribers do: an image goes with the camera_info of its
-    stamp (within `tolerance_ns`), whichever of the two was received first. `keep` messages
-    per side are kept (the newest stamps).
+    stamp (within `tolerance_ns`, the pairs' StampSync's; identical stamps, as a camera
+    driver gives its image and camera_info, where that is unbounded), whichever of the two
+    was received first. `keep` messages per side are kept (the newest stamps).
     """
 
     def __init__(self, tolerance_ns=0, keep=30):
-        self.tolerance_ns = tolerance_ns
+        self.tolerance_ns = tolerance_ns if tolerance_ns < math.inf else 0
         self.keep = keep
         self._by_stamp = {side: {} for side in SIDES}
         self.newest = dict.fromkeys(SIDES)  # the newest camera_info received, per side

@@ -54,7 +54,7 @@ class Runner:
         self.rectifier = Rectifier()
         self.infos = CameraInfos(sync.tolerance_ns)
         self.wait = bool(topics.get('left_info') and topics.get('right_info'))
-        self.waiting = []  # (stamp, left_msg, right_msg, timestamp) waiting for camera_info
+        self.waiting = []  # (left_msg, right_msg, timestamp) waiting for camera_info
         self.gt = {}  # bag timestamp -> {'gt/...': message} until its pair comes
         self.rates = []
         self.warned = set()
@@ -71,13 +71,13 @@ class Runner:
         else:
             pair = self.sync.add(role, messages.stamp_ns(msg.header), msg, len(msg.data))
             if pair is not None:
-                self.waiting.append((*pair, timestamp))
+                self.waiting.append((pair['left'], pair['right'], timestamp))
                 self.release()
 
     def release(self, end=False):
         """Process the waiting pairs, in order, whose camera_info is here (`end`: all)."""
         while self.waiting:
-            stamp, left, right, timestamp = self.waiting[0]
+            left, right, timestamp = self.waiting[0]
             stamps = {'left': messages.stamp_ns(left.header),
                       'right': messages.stamp_ns(right.header)}
             info = self.infos.match(stamps) if self.wait else dict(self.infos.newest)
@@ -88,7 +88,7 @@ class Runner:
             if info is None:
                 return
             self.waiting.pop(0)
-            self.process(stamp, left, right, timestamp, info)
+            self.process(stamps['left'], left, right, timestamp, info)
 
     def image(self, side, msg, info):
         image = message_to_array(msg, self.topics[side])
@@ -206,13 +206,13 @@ def convert(pipeline, values, args):
                 if conn.topic in roles:
                     runner.add(roles[conn.topic], deserialize(raw, conn, timestamp, args.inp),
                                timestamp)
-                    bar.update(sync.pairs - bar.n)
+                    bar.update(sync.sets - bar.n)
             runner.release(end=True)
-        if sync.pairs == 0:
+        if sync.sets == 0:
             raise ValueError(f'{args.inp}: no left/right image pair with matching stamps '
                              f'on {topics["left"]} and {topics["right"]}')
         if runner.processed == 0:
-            raise ValueError(f'{args.inp}: none of its {sync.pairs} pairs could be processed '
+            raise ValueError(f'{args.inp}: none of its {sync.sets} pairs could be processed '
                              '(reasons above)')
     if runner.rates:
         print_rates('mean', {k: float(np.mean([r[k] for r in runner.rates])) for k in RATE_KEYS})
@@ -222,4 +222,5 @@ def convert(pipeline, values, args):
               'more than 3 px too near; mae in px over the published)')
     print(f'{args.out}: {runner.processed} pairs of {topics["left"]} + {topics["right"]} '
           f'processed ({", ".join(sorted(runner.conns))} written), {runner.skipped} skipped; '
-          f'images without a twin skipped: left {sync.dropped_left}, right {sync.dropped_right}')
+          'images without a twin skipped: '
+          + ', '.join(f'{side} {n}' for side, n in sync.dropped.items()))
