@@ -246,6 +246,9 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
         got, want = pipe.summed_costs(rows, cols, at), on_cpu.summed_costs(rows, cols, at)
         kept = on_cpu._workspace['total']  # the path sums of the pair
         np.testing.assert_array_equal(want, kept[rows[:, None], cols[:, None], at])
+        switched = on_cpu.with_config(cfg.replace(device='cuda'))  # a live switch
+        switched(*crop, confidence=cnn)
+        assert 'total' in on_cpu._workspace and not {'cost', 'total'} & set(switched._workspace)
         assert got.dtype == want.dtype
         if kind == 'census':
             np.testing.assert_array_equal(result.disparity, cpu.disparity)

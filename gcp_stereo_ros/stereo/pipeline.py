@@ -114,11 +114,14 @@ class StereoPipeline:
         """
         Return a pipeline for `config` that keeps this one's arrays and, if it can, its CNN.
 
-        The CNN is kept when weights and device match; the arrays always are (the two
-        pipelines must then not run at the same time).
+        The CNN is kept when weights and device match, the arrays when the device does (the
+        two pipelines must then not run at the same time); another device starts without
+        arrays, and this one's go when it does.
         """
-        same = (config.weights, config.device) == (self.config.weights, self.config.device)
-        return StereoPipeline(config, self._net if same else None, self._workspace)
+        device = config.device == self.config.device
+        same = device and config.weights == self.config.weights
+        return StereoPipeline(config, self._net if same else None,
+                              self._workspace if device else None)
 
     def _array(self, name, shape, dtype):
         """
