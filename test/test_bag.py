@@ -331,6 +331,23 @@ def test_run_skips_a_bad_pair_as_the_node_does(tmp_path, params_file, capsys):
             in capsys.readouterr().err)
 
 
+def test_run_pairs_free_running_cameras_by_the_closest_stamps(tmp_path, capsys):
+    """approximate_sync with tolerance 0: the right camera 7 ms late, left image 2 lost."""
+    frame, ms = load_frame('motorcycle', 'motorcycle'), 1_000_000
+    stamps = {'left': [0, 66 * ms, 99 * ms], 'right': [7 * ms, 40 * ms, 73 * ms, 106 * ms]}
+    write_bag(tmp_path / 'in', {f'/{side}/image_rect': (IMAGE, [
+        (t, crop_msg(frame, side, t)) for t in stamps[side]]) for side in stamps})
+    params = tmp_path / 'approximate.yaml'
+    params.write_text(yaml.safe_dump(
+        {'/**': {'ros__parameters': {**PARAMS, 'approximate_sync': True}}}))
+    assert bag.main(['run', '--in', str(tmp_path / 'in'), '--out', str(tmp_path / 'out'),
+                     '--params', str(params)]) == 0
+    outputs, _ = read_bag(tmp_path / 'out')
+    # the last pair too, which no later image settles
+    assert [stamp_of(m) for _, m in outputs['/disparity']] == stamps['left']
+    assert 'images without a twin skipped: left 0, right 1' in capsys.readouterr().out
+
+
 def slow_bag(path, pairs):
     """Write a bag of `pairs` Motorcycle frames: seconds of work for `run`."""
     frame = load_frame('motorcycle', 'motorcycle')

@@ -218,7 +218,8 @@ def test_the_policies_of_more_topics():
     closest = StampSync('ab', tolerance_ns=tolerance_ns(True, 0.0))  # ApproximateTime
     assert closest.tolerance_ns == math.inf and tolerance_ns(False, 0.5) == 0
     closest.add('a', 0, 'a')
-    assert closest.add('b', 10**9, 'b') == {'a': 'a', 'b': 'b'}
+    assert closest.add('b', 10**9, 'b') is None  # a closer a may come
+    assert closest.add('a', 2 * 10**9, 'a2') == {'a': 'a', 'b': 'b'}  # a tie: the older
 
 
 def test_three_topics_go_back_in_time_together():
@@ -234,17 +235,43 @@ def test_approximate_sync_without_a_tolerance_pairs_the_closest_stamps():
     """As stereo_image_proc: approximate_sync with tolerance 0 is ApproximateTime."""
     sync = make_sync({'approximate_sync': True})
     assert sync.tolerance_ns == math.inf
-    assert sync.add('left', 0, 'L0') is None
-    assert sync.add('right', 21 * MS, 'R21') == {'left': 'L0', 'right': 'R21'}
-    assert sync.add('left', 33 * MS, 'L33') is None
-    assert sync.add('left', 66 * MS, 'L66') is None
-    assert sync.add('right', 54 * MS, 'R54') == {'left': 'L66', 'right': 'R54'}
-    assert sync.dropped == {'left': 1, 'right': 0}
+    got = []
+    for k in range(8):  # 30 Hz, the right camera 7 ms late; left frame 2, right frame 5 lost
+        for side, stamp in (('left', 33 * k), ('right', 33 * k + 7)):
+            if (side, k) not in {('left', 2), ('right', 5)}:
+                pair = sync.add(side, stamp * MS, stamp)
+                if pair is not None:
+                    got.append((pair['left'], pair['right']))
+    # each set waits for the next image of the earlier side; a lost image costs its frame only
+    assert got == [(0, 7), (33, 40), (99, 106), (132, 139), (198, 205)]
+    assert sync.dropped == {'left': 1, 'right': 1}  # L165, R73: no twin
+    # (231, 238) waits for a next left image; at the end of a recording it is taken as it is
+    assert sync.flush() == {'left': 231, 'right': 238} and sync.flush() is None
+    assert make_sync({}).flush() is None
+    one = make_sync({'approximate_sync': True, 'queue_size': 1})  # bounded after the match
+    for stamp, side in ((0, 'left'), (7, 'right'), (33, 'left'), (40, 'right'), (66, 'left')):
+        pair = one.add(side, stamp, stamp)
+    assert pair == {'left': 33, 'right': 40} and one.dropped == {'left': 0, 'right': 0}
     assert make_sync({'approximate_sync': False}).tolerance_ns == 0
     assert make_sync({'approximate_sync': True,
                       'approximate_sync_tolerance_seconds': 0.01}).tolerance_ns == 10 * MS
     # the camera_info of an image: its own stamp, as the driver gives them
     assert CameraInfos(sync.tolerance_ns).tolerance_ns == 0
+
+
+@pytest.mark.parametrize('lost', ['left', 'right'])
+def test_closest_stamps_recover_from_a_lost_image(lost):
+    """Identical stamps, left first: after a lost image the pairs are again of one frame."""
+    sync = make_sync({'approximate_sync': True})
+    got = []
+    for k in range(6):
+        for side in SIDES:
+            if (side, k) != (lost, 1):
+                pair = sync.add(side, 33 * k * MS, (side, k))
+                if pair is not None:
+                    got.append((pair['left'][1], pair['right'][1]))
+    assert got == [(0, 0), (2, 2), (3, 3), (4, 4), (5, 5)]
+    assert sync.dropped == {'left': lost == 'right', 'right': lost == 'left'}
 
 
 def test_node_queues_hold_a_quarter_of_the_memory_limit():

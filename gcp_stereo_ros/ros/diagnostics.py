@@ -6,6 +6,7 @@ Published as diagnostic_updater does (it has no Python package on PyPI): one sta
 /diagnostics, once a second of steady time (so also under use_sim_time without a clock).
 """
 from collections import deque
+import math
 import os
 import time
 
@@ -122,8 +123,12 @@ class Diagnostics:
         left, right = inp.last_stamp['left'], inp.last_stamp['right']
         apart = f'{(left - right) / 1e9:+.3f} s apart'
         sync = inp.sync
-        fix = (f'more than approximate_sync_tolerance_seconds ({sync.tolerance_ns / 1e9:g} s)'
-               if sync.tolerance_ns else 'set approximate_sync true with '
-               'approximate_sync_tolerance_seconds above that, or fix the stamps')
+        if sync.tolerance_ns == math.inf:
+            fix = "one side's stamps went back in time, the other's did not (a camera reset?)"
+        elif sync.tolerance_ns:
+            fix = f'more than approximate_sync_tolerance_seconds ({sync.tolerance_ns / 1e9:g} s)'
+        else:
+            fix = ('set approximate_sync true (approximate_sync_tolerance_seconds 0: the '
+                   'closest stamps), or fix the stamps')
         return (f'{head}{topics["left"]} and {topics["right"]} both arrive but their stamps '
                 f'never match (newest: left {left} ns, right {right} ns, {apart}); {fix}')

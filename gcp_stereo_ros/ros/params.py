@@ -151,7 +151,8 @@ PARAMS = (
           'subscribe left/image_raw, right/image_raw and rectify them with the camera_info '
           'K, D, R, P (false: left/image_rect, right/image_rect are rectified already)'),
     Param('approximate_sync', False,
-          'pair left/right images whose stamps differ by at most the tolerance'),
+          'pair left/right images whose stamps differ by at most the tolerance (the closest '
+          'stamps with a tolerance of 0)'),
     Param('approximate_sync_tolerance_seconds', 0.0,
           'largest stamp difference of an approximate pair (0: the closest stamps, as '
           "message_filters' ApproximateTime)", range=(0.0, 10.0, 0.0)),

@@ -5,8 +5,7 @@ Shared by the node (left and right images), point_cloud_node (its four inputs) a
 offline rosbag tools. Its policies are message_filters' as stereo_image_proc's nodes choose
 them (`tolerance_ns`): ExactTime (identical stamps), ApproximateEpsilonTime (stamps at most
 a tolerance apart) or, with approximate sync and a tolerance of 0, ApproximateTime (the
-closest stamps), simplified: a set is complete as soon as the message just added finds, on
-every other topic, the queued message closest to its stamp within the tolerance.
+closest stamps), simplified (see `StampSync`).
 """
 import bisect
 import math
@@ -33,11 +32,14 @@ class StampSync:
     """
     Match one message of each of `names` by stamp (integer ns); stamps may arrive out of order.
 
-    A message completes a set as soon as every other topic holds a message within
-    `tolerance_ns` of its stamp (0: identical stamps; math.inf: any), the closest one, the
-    older one on a tie; so keep a finite tolerance below half the frame period. Each topic
-    queues at most `queue_size` unmatched messages and, beyond its newest one, at most
-    `max_bytes` of them (None = no byte bound; `add` is told each message's size); the
+    With a finite `tolerance_ns` (0: identical stamps) a message completes a set as soon as
+    every other topic holds a message within it of its stamp, the closest one, the older one
+    on a tie; so keep it below half the frame period. With math.inf (ApproximateTime) a set
+    is of messages each closest to the others, once no closer one can come: a set waits for
+    the next message of a topic whose stamp was earlier, as message_filters' does, and a
+    lost message costs its own set only (`flush` takes the last one at a recording's end).
+    Each topic queues at most `queue_size` unmatched messages and, beyond its newest one, at
+    most `max_bytes` of them (None = no byte bound; `add` is told each message's size); the
     oldest stamp goes first.
     A set discards, per topic, every queued message stamped at or before its own: a newer
     set won, so they can never be used. A later arrival stamped at or before the last set
@@ -103,18 +105,66 @@ class StampSync:
         return self._streak[name]
 
     def _add(self, name, stamp_ns, msg, size):
+        if self.tolerance_ns == math.inf:
+            self._insert(name, stamp_ns, msg, size)
+            out = self._settled()  # before the queue's bounds: the oldest may be in it
+            self._bound(name)
+            return out
         picks = {}
         for other in self.names:
+            if other == name:
+                continue
             stamps = self._stamps[other]
             lo = bisect.bisect_left(stamps, stamp_ns - self.tolerance_ns)
             hi = bisect.bisect_right(stamps, stamp_ns + self.tolerance_ns)
-            if other == name:
-                continue
             if lo == hi:
-                self._queue(name, stamp_ns, msg, size)
+                self._insert(name, stamp_ns, msg, size)
+                self._bound(name)
                 return None
-            picks[other] = min(range(lo, hi), key=lambda k: abs(stamps[k] - stamp_ns))
-        out, last = {name: msg}, {name: stamp_ns}
+            picks[other] = _closest(stamps, lo, hi, stamp_ns)
+        return self._take(picks, {name: msg}, {name: stamp_ns})
+
+    def flush(self):
+        """
+        Return the set an unbounded tolerance waits to be sure of, as it stands, or None.
+
+        At the end of a recording, where no later message will settle it.
+        """
+        return self._settled(final=True) if self.tolerance_ns == math.inf else None
+
+    def _settled(self, final=False):
+        """
+        Return the next set of the closest stamps, None while it may still change.
+
+        The oldest queued message goes with the closest message of each other topic if it is
+        the closest of its own topic to each of theirs; else it can be in no set and goes.
+        A message closest to a stamp is sure once its topic holds one stamped at or after
+        that stamp (stamps come in order), or when `final`.
+        """
+        while all(self._stamps.values()):
+            name = min(self.names, key=lambda n: self._stamps[n][0])
+            own, picks = self._stamps[name], {name: 0}
+            for other in self.names:
+                if other == name:
+                    continue
+                stamps = self._stamps[other]
+                j = _closest(stamps, 0, len(stamps), own[0])  # sure: stamps[-1] >= own[0]
+                if not final and own[-1] < stamps[j]:
+                    return None  # a closer one of `name` may come
+                if _closest(own, 0, len(own), stamps[j]):
+                    break  # a newer one of `name` is closer
+                picks[other] = j
+            else:
+                return self._take(picks, {}, {})
+            self._discard_first(name, 1)
+        return None
+
+    def _take(self, picks, out, last):
+        """
+        Return the set of the queued messages `picks` {name: index} and `out` {name: msg}.
+
+        `out` and `last` {name: stamp} hold the message just added, if it is in the set.
+        """
         for other, j in picks.items():
             last[other] = self._stamps[other].pop(j)
             out[other] = self._msgs[other].pop(j)
@@ -129,11 +179,13 @@ class StampSync:
         self.sets += 1
         return {other: out[other] for other in self.names}
 
-    def _queue(self, name, stamp_ns, msg, size):
+    def _insert(self, name, stamp_ns, msg, size):
         i = bisect.bisect_right(self._stamps[name], stamp_ns)
         self._stamps[name].insert(i, stamp_ns)
         self._msgs[name].insert(i, msg)
         self._sizes[name].insert(i, size)
+
+    def _bound(self, name):
         while len(self._stamps[name]) > 1 and (
                 len(self._stamps[name]) > self.queue_size
                 or (self.max_bytes is not None and sum(self._sizes[name]) > self.max_bytes)):
@@ -149,8 +201,13 @@ class StampSync:
         self.dropped[name] += n
 
     def _check(self, name):
-        if name not in self._last:
+        if name not in self.names:
             raise ValueError(f'no topic {name!r}; the topics: {", ".join(map(repr, self.names))}')
+
+
+def _closest(stamps, lo, hi, stamp_ns):
+    """Return the index in [lo, hi) of the stamp closest to `stamp_ns`, the older on a tie."""
+    return min(range(lo, hi), key=lambda k: abs(stamps[k] - stamp_ns))
 
 
 def other_side(side):

@@ -69,10 +69,20 @@ class Runner:
             self.infos.add(role.removesuffix('_info'), messages.stamp_ns(msg.header), msg)
             self.release()
         else:
-            pair = self.sync.add(role, messages.stamp_ns(msg.header), msg, len(msg.data))
-            if pair is not None:
-                self.waiting.append((pair['left'], pair['right'], timestamp))
-                self.release()
+            self.paired(self.sync.add(role, messages.stamp_ns(msg.header), msg, len(msg.data)),
+                        timestamp)
+
+    def paired(self, pair, timestamp):
+        """Queue a pair of the sync (None: none) for its camera_info; process what can be."""
+        if pair is not None:
+            self.waiting.append((pair['left'], pair['right'], timestamp))
+            self.release()
+
+    def finish(self, timestamp):
+        """At the end of the bag: the pairs the sync still waits for, then every waiting one."""
+        while (pair := self.sync.flush()) is not None:
+            self.paired(pair, timestamp)
+        self.release(end=True)
 
     def release(self, end=False):
         """Process the waiting pairs, in order, whose camera_info is here (`end`: all)."""
@@ -199,6 +209,7 @@ def convert(pipeline, values, args):
         if any(types.get(t) for t, r in roles.items() if r == 'gt/disparity'):
             tqdm.write(''.join(f'  {k}' for k in RATE_KEYS) + '  frame')
         lefts = sum(c.msgcount for c in reader.connections if c.topic == topics['left'])
+        timestamp = None  # of the last message read
         with tqdm(total=lefts, unit='pair', leave=False) as bar:
             for conn, timestamp, raw in read_messages(reader, args.inp):
                 if conn.id in copies:
@@ -207,7 +218,7 @@ def convert(pipeline, values, args):
                     runner.add(roles[conn.topic], deserialize(raw, conn, timestamp, args.inp),
                                timestamp)
                     bar.update(sync.sets - bar.n)
-            runner.release(end=True)
+            runner.finish(timestamp)
         if sync.sets == 0:
             raise ValueError(f'{args.inp}: no left/right image pair with matching stamps '
                              f'on {topics["left"]} and {topics["right"]}')
