@@ -565,6 +565,14 @@ def test_diagnostics_say_what_is_wrong(harness, pair):
         harness.send_pair(left, right, 'rgb8', stamp, right_stamp_ns=stamp + 30_000_000)
         stamp += 200_000_000
         time.sleep(0.2)
+    # as the warning says: approximate_sync, its tolerance 0 (the closest stamps)
+    assert all(r.successful for r in harness.set_params({'approximate_sync': True}))
+    first = stamp
+    while not (harness.disparity and stamp_of(harness.disparity[-1]) >= first):
+        assert stamp < first + 10_000_000_000, 'no pair of the closest stamps'
+        harness.send_pair(left, right, 'rgb8', stamp, right_stamp_ns=stamp + 30_000_000)
+        stamp += 200_000_000
+        time.sleep(0.2)
 
 
 @pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
