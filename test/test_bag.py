@@ -343,9 +343,15 @@ def test_run_pairs_free_running_cameras_by_the_closest_stamps(tmp_path, capsys):
     assert bag.main(['run', '--in', str(tmp_path / 'in'), '--out', str(tmp_path / 'out'),
                      '--params', str(params)]) == 0
     outputs, _ = read_bag(tmp_path / 'out')
-    # the last pair too, which no later image settles
-    assert [stamp_of(m) for _, m in outputs['/disparity']] == stamps['left']
-    assert 'images without a twin skipped: left 0, right 1' in capsys.readouterr().out
+    # the first frame goes: the frame period is known from a side's second image on
+    assert [stamp_of(m) for _, m in outputs['/disparity']] == stamps['left'][1:]
+    assert 'images without a twin skipped: left 1, right 2' in capsys.readouterr().out
+    one = tmp_path / 'one'  # a recording of one frame: the closest stamps
+    write_bag(one, {f'/{side}/image_rect': (IMAGE, [(stamps[side][0], crop_msg(
+        frame, side, stamps[side][0]))]) for side in stamps})
+    assert bag.main(['run', '--in', str(one), '--out', str(tmp_path / 'one_out'),
+                     '--params', str(params)]) == 0
+    assert [stamp_of(m) for _, m in read_bag(tmp_path / 'one_out')[0]['/disparity']] == [0]
 
 
 def slow_bag(path, pairs):

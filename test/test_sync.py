@@ -217,9 +217,10 @@ def test_the_policies_of_more_topics():
     assert close.dropped == {'a': 0, 'b': 0}  # b at 4 ms is newer than the set: it waits
     closest = StampSync('ab', tolerance_ns=tolerance_ns(True, 0.0))  # ApproximateTime
     assert closest.tolerance_ns == math.inf and tolerance_ns(False, 0.5) == 0
-    closest.add('a', 0, 'a')
-    assert closest.add('b', 10**9, 'b') is None  # a closer a may come
-    assert closest.add('a', 2 * 10**9, 'a2') == {'a': 'a', 'b': 'b'}  # a tie: the older
+    assert closest.add('a', 0, 'a0') is None and closest.add('b', 3, 'b3') is None  # no period
+    assert closest.add('a', 10, 'a10') is None  # period 10: at most 4 apart
+    assert closest.add('b', 13, 'b13') == {'a': 'a10', 'b': 'b13'}
+    assert closest.dropped == {'a': 1, 'b': 1}
 
 
 def test_three_topics_go_back_in_time_together():
@@ -242,21 +243,29 @@ def test_approximate_sync_without_a_tolerance_pairs_the_closest_stamps():
                 pair = sync.add(side, stamp * MS, stamp)
                 if pair is not None:
                     got.append((pair['left'], pair['right']))
-    # each set waits for the next image of the earlier side; a lost image costs its frame only
-    assert got == [(0, 7), (33, 40), (99, 106), (132, 139), (198, 205)]
-    assert sync.dropped == {'left': 1, 'right': 1}  # L165, R73: no twin
-    # (231, 238) waits for a next left image; at the end of a recording it is taken as it is
-    assert sync.flush() == {'left': 231, 'right': 238} and sync.flush() is None
-    assert make_sync({}).flush() is None
-    one = make_sync({'approximate_sync': True, 'queue_size': 1})  # bounded after the match
-    for stamp, side in ((0, 'left'), (7, 'right'), (33, 'left'), (40, 'right'), (66, 'left')):
-        pair = one.add(side, stamp, stamp)
-    assert pair == {'left': 33, 'right': 40} and one.dropped == {'left': 0, 'right': 0}
+    # within half the frame period, known from the second image of a side on
+    assert got == [(33, 40), (99, 106), (132, 139), (198, 205), (231, 238)]
+    assert sync.dropped == {'left': 2, 'right': 2}  # L0, R7 (no period yet); L165, R73
+    assert sync.flush() is None
     assert make_sync({'approximate_sync': False}).tolerance_ns == 0
     assert make_sync({'approximate_sync': True,
                       'approximate_sync_tolerance_seconds': 0.01}).tolerance_ns == 10 * MS
     # the camera_info of an image: its own stamp, as the driver gives them
     assert CameraInfos(sync.tolerance_ns).tolerance_ns == 0
+
+
+def test_closest_stamps_skipped_images_and_one_frame():
+    """A node that keeps only the newest image: the period per image its publisher sent."""
+    sync = make_sync({'approximate_sync': True})
+    assert sync.add('left', 0, 0) is None and sync.add('right', 7 * MS, 0) is None
+    # 30 frames later, the right image before the newest left one: a frame apart, no pair
+    assert sync.add('right', (33 * 30 + 7) * MS, 30, sent=30) is None
+    assert sync.add('left', 33 * 31 * MS, 31, sent=31) is None
+    assert sync.add('right', (33 * 31 + 7) * MS, 31) == {'left': 31, 'right': 31}
+    one = make_sync({'approximate_sync': True})  # a recording of one frame
+    assert one.add('left', 0, 'L') is None and one.add('right', 7 * MS, 'R') is None
+    assert one.flush() == {'left': 'L', 'right': 'R'} and one.flush() is None
+    assert make_sync({}).flush() is None
 
 
 @pytest.mark.parametrize('lost', ['left', 'right'])

@@ -8,9 +8,11 @@ a tolerance apart) or, with approximate sync and a tolerance of 0, ApproximateTi
 closest stamps), simplified (see `StampSync`).
 """
 import bisect
+from collections import deque
 import math
 
 SIDES = ('left', 'right')
+PERIOD_GAPS = 30  # the stamp gaps an unbounded tolerance takes the frame period from
 
 
 def tolerance_ns(approximate, tolerance_seconds):
@@ -34,10 +36,11 @@ class StampSync:
 
     With a finite `tolerance_ns` (0: identical stamps) a message completes a set as soon as
     every other topic holds a message within it of its stamp, the closest one, the older one
-    on a tie; so keep it below half the frame period. With math.inf (ApproximateTime) a set
-    is of messages each closest to the others, once no closer one can come: a set waits for
-    the next message of a topic whose stamp was earlier, as message_filters' does, and a
-    lost message costs its own set only (`flush` takes the last one at a recording's end).
+    on a tie; so keep it below half the frame period. With math.inf (the closest stamps, as
+    ApproximateTime) it is just under half the frame period, the smallest of the last
+    PERIOD_GAPS gaps between consecutive stamps of a topic (per message sent), so that a
+    set does not span two frames, whatever is lost or skipped; before a topic's second
+    message, identical stamps only (`flush` takes a recording of one frame).
     Each topic queues at most `queue_size` unmatched messages and, beyond its newest one, at
     most `max_bytes` of them (None = no byte bound; `add` is told each message's size); the
     oldest stamp goes first.
@@ -70,14 +73,21 @@ class StampSync:
         self._last = dict.fromkeys(self.names)  # the stamps of the last set
         self._back = dict.fromkeys(self.names)  # (stamp, msg, size) at or before _last
         self._streak = dict.fromkeys(self.names, 0)
+        self._previous = dict.fromkeys(self.names)  # the stamp each topic added last
+        self._gaps = deque(maxlen=PERIOD_GAPS)  # between consecutive stamps of a topic, > 0
 
-    def add(self, name, stamp_ns, msg, size=0):
+    def add(self, name, stamp_ns, msg, size=0, sent=1):
         """
         Queue `msg` (of `size` bytes) of topic `name`; return {name: message} of a set.
 
-        Return None while the set is incomplete.
+        Return None while the set is incomplete. `sent`: the messages its publisher sent
+        since the last one added, this one included (more where a subscriber keeps only the
+        newest), for the frame period.
         """
         self._check(name)
+        previous, self._previous[name] = self._previous[name], stamp_ns
+        if previous is not None and stamp_ns > previous:
+            self._gaps.append((stamp_ns - previous) // max(sent, 1))
         if self._last[name] is None or stamp_ns > self._last[name]:
             return self._add(name, stamp_ns, msg, size)
         if self._back[name] is not None:
@@ -105,59 +115,45 @@ class StampSync:
         return self._streak[name]
 
     def _add(self, name, stamp_ns, msg, size):
-        if self.tolerance_ns == math.inf:
-            self._insert(name, stamp_ns, msg, size)
-            out = self._settled()  # before the queue's bounds: the oldest may be in it
-            self._bound(name)
-            return out
-        picks = {}
+        picks, tolerance = {}, self._tolerance()
         for other in self.names:
             if other == name:
                 continue
             stamps = self._stamps[other]
-            lo = bisect.bisect_left(stamps, stamp_ns - self.tolerance_ns)
-            hi = bisect.bisect_right(stamps, stamp_ns + self.tolerance_ns)
+            lo = bisect.bisect_left(stamps, stamp_ns - tolerance)
+            hi = bisect.bisect_right(stamps, stamp_ns + tolerance)
             if lo == hi:
-                self._insert(name, stamp_ns, msg, size)
-                self._bound(name)
+                self._queue(name, stamp_ns, msg, size)
                 return None
             picks[other] = _closest(stamps, lo, hi, stamp_ns)
         return self._take(picks, {name: msg}, {name: stamp_ns})
 
     def flush(self):
         """
-        Return the set an unbounded tolerance waits to be sure of, as it stands, or None.
+        Return a set of the closest queued stamps while no frame period is known, else None.
 
-        At the end of a recording, where no later message will settle it.
+        At the end of a recording, where an unbounded tolerance had nothing to go by: a
+        recording of one frame from cameras with offset stamps.
         """
-        return self._settled(final=True) if self.tolerance_ns == math.inf else None
+        queues = self._stamps
+        if self.tolerance_ns < math.inf or self._gaps or not all(queues.values()):
+            return None
+        name = self.names[0]
+        stamp = queues[name][-1]
+        return self._take({other: _closest(stamps, 0, len(stamps), stamp)
+                           for other, stamps in queues.items()}, {}, {})
 
-    def _settled(self, final=False):
+    def _tolerance(self):
         """
-        Return the next set of the closest stamps, None while it may still change.
+        Return the stamp difference a set may span, in ns.
 
-        The oldest queued message goes with the closest message of each other topic if it is
-        the closest of its own topic to each of theirs; else it can be in no set and goes.
-        A message closest to a stamp is sure once its topic holds one stamped at or after
-        that stamp (stamps come in order), or when `final`.
+        `tolerance_ns`, or for an unbounded one less than half the frame period: the
+        smallest of the last PERIOD_GAPS gaps between consecutive stamps of a topic (0
+        before any).
         """
-        while all(self._stamps.values()):
-            name = min(self.names, key=lambda n: self._stamps[n][0])
-            own, picks = self._stamps[name], {name: 0}
-            for other in self.names:
-                if other == name:
-                    continue
-                stamps = self._stamps[other]
-                j = _closest(stamps, 0, len(stamps), own[0])  # sure: stamps[-1] >= own[0]
-                if not final and own[-1] < stamps[j]:
-                    return None  # a closer one of `name` may come
-                if _closest(own, 0, len(own), stamps[j]):
-                    break  # a newer one of `name` is closer
-                picks[other] = j
-            else:
-                return self._take(picks, {}, {})
-            self._discard_first(name, 1)
-        return None
+        if self.tolerance_ns < math.inf:
+            return self.tolerance_ns
+        return (min(self._gaps) - 1) // 2 if self._gaps else 0
 
     def _take(self, picks, out, last):
         """
@@ -179,13 +175,11 @@ class StampSync:
         self.sets += 1
         return {other: out[other] for other in self.names}
 
-    def _insert(self, name, stamp_ns, msg, size):
+    def _queue(self, name, stamp_ns, msg, size):
         i = bisect.bisect_right(self._stamps[name], stamp_ns)
         self._stamps[name].insert(i, stamp_ns)
         self._msgs[name].insert(i, msg)
         self._sizes[name].insert(i, size)
-
-    def _bound(self, name):
         while len(self._stamps[name]) > 1 and (
                 len(self._stamps[name]) > self.queue_size
                 or (self.max_bytes is not None and sum(self._sizes[name]) > self.max_bytes)):
