@@ -262,6 +262,19 @@ def test_closest_stamps_skipped_images_and_one_frame():
     assert sync.add('right', (33 * 30 + 7) * MS, 30, sent=30) is None
     assert sync.add('left', 33 * 31 * MS, 31, sent=31) is None
     assert sync.add('right', (33 * 31 + 7) * MS, 31) == {'left': 31, 'right': 31}
+    # no sequence numbers (sent None): no period, identical stamps only
+    blind = make_sync({'approximate_sync': True})
+    for k in range(3):
+        blind.add('left', 33 * k * MS, k, sent=None)
+        assert blind.add('right', (33 * k + 7) * MS, k, sent=None) is None
+    # a copy 1 ns later counted as two images: the median of the gaps gets over it
+    copy = make_sync({'approximate_sync': True})
+    got = []
+    for k, stamp in enumerate([0, 1, 33, 66, 99]):
+        copy.add('left', stamp * MS + (k == 1), stamp, sent=2 if k == 1 else 1)
+        pair = copy.add('right', (stamp + 7) * MS, stamp)
+        got.append(pair and pair['left'])
+    assert got == [None, None, None, 66, 99]
     one = make_sync({'approximate_sync': True})  # a recording of one frame
     assert one.add('left', 0, 'L') is None and one.add('right', 7 * MS, 'R') is None
     assert one.flush() == {'left': 'L', 'right': 'R'} and one.flush() is None

@@ -10,6 +10,7 @@ closest stamps), simplified (see `StampSync`).
 import bisect
 from collections import deque
 import math
+from statistics import median_low
 
 SIDES = ('left', 'right')
 PERIOD_GAPS = 30  # the stamp gaps an unbounded tolerance takes the frame period from
@@ -37,10 +38,11 @@ class StampSync:
     With a finite `tolerance_ns` (0: identical stamps) a message completes a set as soon as
     every other topic holds a message within it of its stamp, the closest one, the older one
     on a tie; so keep it below half the frame period. With math.inf (the closest stamps, as
-    ApproximateTime) it is just under half the frame period, the smallest of the last
-    PERIOD_GAPS gaps between consecutive stamps of a topic (per message sent), so that a
-    set does not span two frames, whatever is lost or skipped; before a topic's second
-    message, identical stamps only (`flush` takes a recording of one frame).
+    ApproximateTime) it is just under half the frame period, the median of the last
+    PERIOD_GAPS gaps between consecutive stamps of a topic per message its publisher sent
+    (the shortest of the topics'), so that a set does not span two frames where messages
+    were lost or skipped; before a topic's second message, identical stamps only (`flush`
+    takes a recording of one frame).
     Each topic queues at most `queue_size` unmatched messages and, beyond its newest one, at
     most `max_bytes` of them (None = no byte bound; `add` is told each message's size); the
     oldest stamp goes first.
@@ -74,7 +76,8 @@ class StampSync:
         self._back = dict.fromkeys(self.names)  # (stamp, msg, size) at or before _last
         self._streak = dict.fromkeys(self.names, 0)
         self._previous = dict.fromkeys(self.names)  # the stamp each topic added last
-        self._gaps = deque(maxlen=PERIOD_GAPS)  # between consecutive stamps of a topic, > 0
+        # per topic, the gaps between its consecutive stamps per message sent, > 0
+        self._gaps = {name: deque(maxlen=PERIOD_GAPS) for name in self.names}
 
     def add(self, name, stamp_ns, msg, size=0, sent=1):
         """
@@ -82,12 +85,12 @@ class StampSync:
 
         Return None while the set is incomplete. `sent`: the messages its publisher sent
         since the last one added, this one included (more where a subscriber keeps only the
-        newest), for the frame period.
+        newest; None: not known, then its gap does not count), for the frame period.
         """
         self._check(name)
         previous, self._previous[name] = self._previous[name], stamp_ns
-        if previous is not None and stamp_ns > previous:
-            self._gaps.append((stamp_ns - previous) // max(sent, 1))
+        if previous is not None and sent and (stamp_ns - previous) // sent > 0:
+            self._gaps[name].append((stamp_ns - previous) // sent)
         if self._last[name] is None or stamp_ns > self._last[name]:
             return self._add(name, stamp_ns, msg, size)
         if self._back[name] is not None:
@@ -136,7 +139,7 @@ class StampSync:
         recording of one frame from cameras with offset stamps.
         """
         queues = self._stamps
-        if self.tolerance_ns < math.inf or self._gaps or not all(queues.values()):
+        if self.tolerance_ns < math.inf or any(self._gaps.values()) or not all(queues.values()):
             return None
         name = self.names[0]
         stamp = queues[name][-1]
@@ -147,13 +150,13 @@ class StampSync:
         """
         Return the stamp difference a set may span, in ns.
 
-        `tolerance_ns`, or for an unbounded one less than half the frame period: the
-        smallest of the last PERIOD_GAPS gaps between consecutive stamps of a topic (0
-        before any).
+        `tolerance_ns`, or for an unbounded one less than half the frame period: of the
+        topics with one, the shortest median of their last PERIOD_GAPS gaps (0 before any).
         """
         if self.tolerance_ns < math.inf:
             return self.tolerance_ns
-        return (min(self._gaps) - 1) // 2 if self._gaps else 0
+        periods = [median_low(gaps) for gaps in self._gaps.values() if gaps]
+        return (min(periods) - 1) // 2 if periods else 0
 
     def _take(self, picks, out, last):
         """
