@@ -82,7 +82,6 @@ class StereoInput:
         self._wake = node.create_guard_condition(lambda: None)
         self.received = dict.fromkeys(SIDES, 0)
         self.arrived = dict.fromkeys(SIDES, 0)
-        self._sequence = dict.fromkeys(SIDES)  # the last taken image's publication number
         self.last_stamp = dict.fromkeys(SIDES)
         self.paired_at = None
         self.unpaired_since = None
@@ -100,6 +99,7 @@ class StereoInput:
         for sub in self.subs.values():
             self._node.destroy_subscription(sub)
         self._rectify = values['rectify']
+        self._sequence = dict.fromkeys(SIDES)  # the last taken image's publication number
         kind = CompressedImage if values['image_transport'] == 'compressed' else Image
         self.subs = {side: self._node.create_subscription(
             kind, image_topic(side, values), lambda m, i, s=side: self._on_image(s, m, i),
