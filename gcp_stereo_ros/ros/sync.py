@@ -89,8 +89,9 @@ class StampSync:
         """
         self._check(name)
         previous, self._previous[name] = self._previous[name], stamp_ns
-        if previous is not None and sent and (stamp_ns - previous) // sent > 0:
-            self._gaps[name].append((stamp_ns - previous) // sent)
+        gap = (stamp_ns - previous) // sent if previous is not None and sent else 0
+        if gap > 0:
+            self._gaps[name].append(gap)
         if self._last[name] is None or stamp_ns > self._last[name]:
             return self._add(name, stamp_ns, msg, size)
         if self._back[name] is not None:
@@ -141,8 +142,7 @@ class StampSync:
         queues = self._stamps
         if self.tolerance_ns < math.inf or any(self._gaps.values()) or not all(queues.values()):
             return None
-        name = self.names[0]
-        stamp = queues[name][-1]
+        stamp = queues[self.names[0]][-1]
         return self._take({other: _closest(stamps, 0, len(stamps), stamp)
                            for other, stamps in queues.items()}, {}, {})
 
