@@ -3,13 +3,13 @@ import os
 from pathlib import Path
 from types import SimpleNamespace
 
-from gcp_stereo_ros.ros.graph import private_env
+from gcp_stereo_ros.ros.graph import join_private_graph
 import numpy as np
 import pytest
 
 # Every test process gets its own DDS domain on loopback only, so parallel runs never
 # cross-talk; the shipped Fast DDS profile lets large images through shared memory.
-os.environ.update(private_env(1 + os.getpid() % 100))
+join_private_graph(1 + os.getpid() % 100)
 
 DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 

@@ -10,6 +10,14 @@ def test_private_graph_keeps_the_users_domain(monkeypatch):
     assert 1 <= int(private_env()['ROS_DOMAIN_ID']) <= 101  # none set: a random one
 
 
+def test_private_graph_drops_the_deprecated_localhost_variable(monkeypatch):
+    # Jazzy's rcl warns on stderr about ROS_LOCALHOST_ONLY; loopback comes from the range
+    monkeypatch.setenv('ROS_LOCALHOST_ONLY', '1')
+    env = private_env()
+    assert 'ROS_LOCALHOST_ONLY' not in env
+    assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
+
+
 def test_shm_segment_size_is_read_from_the_profile(tmp_path):
     profile = {'FASTRTPS_DEFAULT_PROFILES_FILE': str(package_file('config/fastdds.xml'))}
     assert shm_segment_bytes(profile) == 32 << 20

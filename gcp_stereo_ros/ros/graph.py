@@ -57,15 +57,24 @@ def private_env(domain_id=None):
 
     The graph gets loopback discovery only, the shipped Fast DDS profile (32 MiB shared
     memory) so large images are not dropped, and DDS domain `domain_id`, else the user's
-    ROS_DOMAIN_ID, else a random one.
+    ROS_DOMAIN_ID, else a random one. ROS_LOCALHOST_ONLY, which Jazzy replaces by
+    ROS_AUTOMATIC_DISCOVERY_RANGE and warns about on stderr, is left out.
     """
     env = dict(os.environ)
+    env.pop('ROS_LOCALHOST_ONLY', None)
     if domain_id is not None or not env.get('ROS_DOMAIN_ID'):
         env['ROS_DOMAIN_ID'] = str(domain_id if domain_id is not None
                                    else random.randint(1, 101))
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(package_file('config/fastdds.xml'))
     return env
+
+
+def join_private_graph(domain_id=None):
+    """Make this process's environment `private_env(domain_id)`, which its children inherit."""
+    env = private_env(domain_id)
+    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+    os.environ.update(env)
 
 
 def shm_segment_bytes(env=None):
@@ -108,7 +117,7 @@ def peer_graph(peer_name, params=None, params_file=None):
     too) and `peer` an rclpy node `peer_name` of ours spinning in a thread. On exit the peer
     is destroyed and the node stopped with Ctrl-C (`node.returncode` holds its exit code).
     """
-    os.environ.update(private_env())
+    join_private_graph()
     import rclpy  # after the environment is set: rclpy reads it at init
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
