@@ -73,7 +73,8 @@ def private_env(domain_id=None):
 def join_private_graph(domain_id=None):
     """Make this process's environment `private_env(domain_id)`, which its children inherit."""
     env = private_env(domain_id)
-    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+    for name in set(os.environ) - set(env):  # what private_env leaves out
+        del os.environ[name]
     os.environ.update(env)
 
 

@@ -134,13 +134,13 @@ class StereoInput:
     def _on_image(self, side, msg, info):
         self.received[side] += 1
         sequence, last = info.get('publication_sequence_number'), self._sequence[side]
-        # 1 when the middleware gives no numbers, or a new publisher numbers from 1 again
         counted = None not in (sequence, last) and sequence > last
-        self.arrived[side] += sequence - last if counted else 1
+        # the images sent since the last one taken; not known (and counted as 1 arrived) when
+        # the middleware gives no numbers, or a new publisher numbers from 1 again
+        sent = sequence - last if counted else None
+        self.arrived[side] += sent or 1
         self._sequence[side] = sequence
         stamp = self.last_stamp[side] = stamp_ns(msg.header)
-        # the images sent since the last one taken: not known without sequence numbers
-        sent = sequence - last if counted else None
         pair = self.sync.add(side, stamp, msg, len(msg.data), sent)
         if self.sync.unmatched_streak(side) == STREAK_WARN:
             topics = self.topics()
