@@ -322,12 +322,12 @@ def test_run_skips_a_bad_pair_as_the_node_does(tmp_path, params_file, capsys):
     assert ' processed (confidence, disparity, gcp_mask written), 2 skipped;' in out.out
     outputs, _ = read_bag(tmp_path / 'out')
     assert [stamp_of(m) for _, m in outputs['/disparity']] == [1, 4]
-    too_high = tmp_path / 'theta.yaml'  # the shipped weights' confidence is at most 0.903
+    too_high = tmp_path / 'theta.yaml'  # the shipped weights' confidence is at most 0.961
     too_high.write_text(yaml.safe_dump(
-        {'/**': {'ros__parameters': {**PARAMS, 'census.theta': 0.95}}}))
+        {'/**': {'ros__parameters': {**PARAMS, 'census.theta': 0.97}}}))
     assert bag.main(['run', '--in', str(path), '--out', str(tmp_path / 'out'), '--force',
                      '--params', str(too_high)]) == 0
-    assert ('gcp-stereo-bag: warning: theta 0.95 selects no GCP: the CNN confidence is at most'
+    assert ('gcp-stereo-bag: warning: theta 0.97 selects no GCP: the CNN confidence is at most'
             in capsys.readouterr().err)
 
 

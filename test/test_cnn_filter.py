@@ -158,8 +158,8 @@ def test_the_filter_rows_are_kept_between_pairs_and_let_go_without_it(tsukuba):
     assert 'cnn_filter' not in pipe._workspace
 
 
-def test_the_filter_is_off_by_default_and_in_the_paper_preset():
-    assert StereoConfig().cnn_filter_radius == 0
+def test_the_filter_is_on_by_default_and_off_in_the_paper_preset():
+    assert StereoConfig().cnn_filter_radius == 4
     assert all(values['cnn_filter_radius'] == 0 for values in PRESETS['paper'].values())
     with pytest.raises(ValueError, match=r'cnn_filter_radius must be an integer in \[0, 8\]'):
         StereoConfig(cnn_filter_radius=9)

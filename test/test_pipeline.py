@@ -193,9 +193,10 @@ def test_downsample_matches_the_binned_pair_and_scales_back(motorcycle):
     """
     Check that downsample 2 is matching the area-binned pair with max_disp / 2.
 
-    The invalidation runs on the small pair too, with the speckle size and range scaled to
-    it; the outputs come back at the full (odd) size, each value repeated over its 2x2 block,
-    disparities doubled; its confidence, fed back in, gives the same result.
+    The CNN filter and the invalidation run on the small pair too, with the filter's radius,
+    the speckle size and range and plain_check scaled to it; the outputs come back at the
+    full (odd) size, each value repeated over its 2x2 block, disparities doubled; its
+    confidence, fed back in, gives the same result.
     """
     left, right, _ = motorcycle
     left, right = left[150:351, 300:601], right[150:351, 300:601]
@@ -205,7 +206,8 @@ def test_downsample_matches_the_binned_pair_and_scales_back(motorcycle):
                                                 speckle_range=4))
     half = pipe(left, right)
     small = pipe.with_config(pipe.config.replace(max_disp=32, downsample=1, speckle_size=25,
-                                                 speckle_range=2))(
+                                                 speckle_range=2, plain_check=0.75,
+                                                 cnn_filter_radius=2))(
         *(bin_area(g.astype(np.float32) @ np.float32([0.299, 0.587, 0.114]), 2)
           for g in (left, right)))
     assert half.disparity.shape == left.shape[:2]

@@ -93,7 +93,8 @@ PARAMS = (
           "GCPs only where the right view's CNN disparity agrees within 1 px", 'gcp_lr_check'),
     Param('cnn_filter_radius', _D.cnn_filter_radius,
           'guided filter of the CNN confidence volume before the GCPs are taken from it, '
-          'windows of 2 r + 1 px, the left image as the guide (0 = off)', 'cnn_filter_radius'),
+          'windows of 2 r + 1 px (r / downsample, at least 1, on the matching grid), the '
+          'left image as the guide (0 = off)', 'cnn_filter_radius'),
     Param('weights', _D.weights,
           "CNN weights file ('' = the weights shipped with the package)", 'weights'),
     Param('device', _D.device,
@@ -115,6 +116,10 @@ PARAMS = (
           'end of its range', 'valid_window'),
     Param('lr_check', _D.lr_check, "invalidate where the right view's winner is more than "
           '1 px from the disparity (left-right check)', 'lr_check'),
+    Param('plain_check', _D.plain_check,
+          'invalidate where the disparity is more than this many px above the one SGM finds '
+          'on the same costs without the GCPs (a second opinion without the CNN; 0 = off)',
+          'plain_check'),
     Param('uniqueness_ratio', _D.uniqueness_ratio,
           'invalidate where a disparity more than 1 px from the winner has a summed SGM cost '
           "less than this many percent above the winner's (OpenCV's uniquenessRatio; 0 = off)",
@@ -295,7 +300,7 @@ def config_warnings(pipeline):
     if config.use_gcp:
         from ..stereo.cnn import calibrated  # torch is loaded with the CNN anyway
         top = float(calibrated(pipeline.net, np.ones(1, np.float32),
-                               config.cnn_filter_radius)[0])
+                               config.matched_radius)[0])
         if config.theta >= top:
             return [f'theta {config.theta:g} selects no GCP: the CNN confidence is at most '
                     f'{top:.3g} with these weights, so every pixel gets c_hi at every '

@@ -31,9 +31,9 @@ PAPER = {
 }
 # Every invalidation off (stereo.postprocess). The paper published every integer WTA
 # disparity: its preset has this and no sub-pixel fit.
-UNFILTERED = {'valid_window': False, 'lr_check': False, 'uniqueness_ratio': 0.0,
-              'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0, 'min_confidence': 0.0,
-              'background_ratio': 0.0}
+UNFILTERED = {'valid_window': False, 'lr_check': False, 'plain_check': 0.0,
+              'uniqueness_ratio': 0.0, 'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0,
+              'min_confidence': 0.0, 'background_ratio': 0.0}
 PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False, 'cnn_filter_radius': 0}
          for cost, values in PAPER.items()}
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
@@ -51,6 +51,7 @@ RANGES = {
     'cnn_filter_radius': (0, 8),
     'c_hi': (0.0, MAX_COST_PARAM),
     'c_low': (0.0, MAX_COST_PARAM),
+    'plain_check': (0.0, 1024.0),
     'uniqueness_ratio': (0.0, 99.0),
     'speckle_size': (0, 1_000_000),
     'speckle_range': (0, 1024),
@@ -123,10 +124,11 @@ class StereoConfig:
         GCPs only where the right view's CNN disparity agrees within 1 px (not in the
         paper).
     cnn_filter_radius : int
-        Pixels of the matching grid: the CNN confidence volume is guided-filtered (the left
-        image as the guide, windows of 2 r + 1 px) before the GCPs' disparities and
-        confidences are taken from it (``stereo.cnn_filter``; not in the paper); in
-        [0, 8], 0 = off. Each radius has its own calibration beside the weights.
+        Pixels: the CNN confidence volume is guided-filtered (the left image as the guide,
+        windows of 2 r + 1 px) before the GCPs' disparities and confidences are taken from
+        it (``stereo.cnn_filter``; not in the paper); in [0, 8], 0 = off. Full-size pixels:
+        with downsample f the filter runs on the matching grid with r / f, at least 1
+        (`matched_radius`). Each radius has its own calibration beside the weights.
     weights : str
         Path of the CNN weights file; ``''`` is the weights shipped with the package.
     device : str
@@ -143,6 +145,11 @@ class StereoConfig:
         edge, and left of x = max_disp - 1 where the winner is at the end of its range.
     lr_check : bool
         Invalidate where the right view's winner is more than 1 px from the disparity.
+    plain_check : float
+        Pixels: with use_gcp, invalidate where the disparity is more than this above the
+        one that SGM finds on the same costs without the GCPs (plain SGM, a second opinion
+        that needs no CNN: a near obstacle the GCPs alone put there); in [0, 1024], 0 = off
+        (full-size pixels: check / f on the matching grid). Costs a second SGM pass.
     uniqueness_ratio : float
         Percent, OpenCV's uniquenessRatio: invalidate where a disparity more than 1 px
         from the winner has a summed SGM cost less than this many percent above the
@@ -192,7 +199,7 @@ class StereoConfig:
     c_hi: float = COST_DEFAULTS['census']['c_hi']
     c_low: float = COST_DEFAULTS['census']['c_low']
     gcp_lr_check: bool = COST_DEFAULTS['census']['gcp_lr_check']
-    cnn_filter_radius: int = 0
+    cnn_filter_radius: int = 4
     weights: str = ''
     device: str = 'cpu'
     # 'auto': see cnn.bf16_native; on the validation frames the defaults' error rates moved
@@ -205,13 +212,14 @@ class StereoConfig:
     # rejects are right; its agreement is a confidence feature instead.
     valid_window: bool = True
     lr_check: bool = False
+    plain_check: float = 1.5
     uniqueness_ratio: float = 1.0
     speckle_size: int = 100
     speckle_range: int = 4
     min_depth: float = 0.3
     max_depth: float = 0.0
     min_confidence: float = 0.9
-    background_ratio: float = 1.5
+    background_ratio: float = 1.2
     downsample: int = 1
     memory_limit_mb: int = 3072
 
@@ -287,6 +295,11 @@ class StereoConfig:
             found.append(f'max_depth ({self.max_depth}) must be above min_depth '
                          f'({self.min_depth}), or 0 for no limit')
         return found
+
+    @property
+    def matched_radius(self):
+        """Return the CNN filter's radius on the matching grid: r / downsample, >= 1 (0: off)."""
+        return max(1, self.cnn_filter_radius // self.downsample) if self.cnn_filter_radius else 0
 
     @property
     def matched_disp(self):

@@ -69,9 +69,10 @@ STRIP_LAYERS = 8
 # rounded up.
 FULL_PIXEL_BYTES = 32
 # The invalidation and the confidence, per full-size pixel, while the volumes are kept: the
-# outputs alive then (31) and the features and their fit (121, measured with tracemalloc at
-# 741x500; the invalidation after them, with background_ratio, 35 at 1242x375).
-POST_PIXEL_BYTES = 152
+# outputs alive then (35, plain SGM's disparity for plain_check included) and the features
+# and their fit (121, measured with tracemalloc at 741x500; the invalidation after them,
+# with background_ratio, 35 at 1242x375).
+POST_PIXEL_BYTES = 156
 
 
 def memory_bytes(cfg, height, width):
@@ -103,11 +104,11 @@ def _memory_terms(cfg, height, width):
     if cfg.use_gcp:
         from .cnn import FEATURES, PAD, STRIP_ROWS
         strip = 2 * FEATURES * (min(STRIP_ROWS, h) + 2 * PAD) * (w + 2 * PAD) * 4
-        pixel = CNN_PIXEL_BYTES + (GUIDE_PIXEL_BYTES if cfg.cnn_filter_radius else 0)
+        pixel = CNN_PIXEL_BYTES + (GUIDE_PIXEL_BYTES if cfg.matched_radius else 0)
         fixed = max(fixed, pixel * h * w + STRIP_LAYERS * strip)
-        if cfg.cnn_filter_radius:  # cnn_filter.StripFilter's rows, kept as the volumes are
+        if cfg.matched_radius:  # cnn_filter.StripFilter's rows, kept as the volumes are
             from .cnn_filter import scratch_size
-            per_disparity += 4 * scratch_size(h, w, 1, cfg.cnn_filter_radius, STRIP_ROWS)
+            per_disparity += 4 * scratch_size(h, w, 1, cfg.matched_radius, STRIP_ROWS)
     if f > 1:
         fixed += FULL_PIXEL_BYTES * height * width
     return max(fixed, POST_PIXEL_BYTES * height * width), per_disparity

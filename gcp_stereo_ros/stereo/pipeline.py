@@ -20,6 +20,10 @@ from .memory import call_glibc, check_memory, volume_arithmetic
 from .postprocess import Confidence, features, invalidate, margin
 from .sgm import aggregate, costs_at, winners
 
+# The paths of plain SGM for `plain_check` (horizontal and vertical): on the validation
+# frames as good a second opinion as 16, in a quarter of the time (doc/published.md).
+PLAIN_PATHS = 4
+
 
 def filter_size(shape, max_disp, radius):
     """Return the float32 values the CNN filter holds for a pair of `shape` (0 without it)."""
@@ -146,7 +150,7 @@ class StereoPipeline:
         """
         Return the CNN, loaded on first use.
 
-        ValueError if its weights have no calibration for the config's cnn_filter_radius.
+        ValueError if its weights have no calibration for the config's matched_radius.
         """
         from .cnn import calibration, load_net  # torch is imported only when GCPs are used
         if self._net is None:
@@ -155,7 +159,7 @@ class StereoPipeline:
                 from .gpu import torch_device
                 device = torch_device(device)
             self._net = load_net(self.config.weights or None, device)
-        calibration(self._net, self.config.cnn_filter_radius)
+        calibration(self._net, self.config.matched_radius)
         return self._net
 
     def __call__(self, left, right, confidence=None, cancel=None, camera=None):
@@ -227,7 +231,7 @@ class StereoPipeline:
             outputs = self._match(left, right, confidence, lap, seconds, cancel)
         else:
             outputs = self._match_cuda(left, right, confidence, lap, seconds)
-        disp, consistent, s_best, s_second, gcp, cof_c, cof_d, cof_dr = outputs
+        disp, consistent, s_best, s_second, gcp, cof_c, cof_d, cof_dr, plain = outputs
         m = margin(s_best, s_second)
         del s_best, s_second
         if cfg.median:
@@ -236,7 +240,7 @@ class StereoPipeline:
         if self.fit is not None:
             sure = self.fit(features(disp, consistent, m, cof_c, cof_d, gcp))
             lap('disparity_confidence')
-        invalidate(disp, consistent, m, cfg, camera, sure, self.summed_costs)
+        invalidate(disp, consistent, m, cfg, camera, sure, self.summed_costs, plain)
         if sure is not None:
             sure[np.isnan(disp)] = 0.0
         lap('invalidate')
@@ -271,10 +275,11 @@ class StereoPipeline:
 
     def _match(self, left, right, confidence, lap, seconds, cancel):
         """
-        Return (disparity, consistent, s_best, s_second, gcp, cof_c, cof_d, cof_dr), on the CPU.
+        Return (disparity, consistent, s_best, s_second, gcp, cof_c, cof_d, cof_dr, plain).
 
-        The first four are `sgm.winners`' outputs (the left-right agreement always computed,
-        for the confidence).
+        On the CPU. The first four are `sgm.winners`' outputs (the left-right agreement always
+        computed, for the confidence); `plain`: the integer disparity of SGM on the costs
+        before the GCPs refine them, for `plain_check` (None without it or without GCPs).
         """
         cfg = self.config
         nd = cfg.matched_disp
@@ -282,7 +287,7 @@ class StereoPipeline:
         scale, dtype, fixed = volume_arithmetic(cfg)
         # Kept arrays of another shape or type are let go now, before anything is allocated.
         kept = {name: self._array(name, shape, dtype) for name in ('cost', 'total')}
-        radius = cfg.cnn_filter_radius if cfg.use_gcp else 0
+        radius = cfg.matched_radius if cfg.use_gcp else 0
         # The CNN filter's rows (cnn_filter.StripFilter), kept too; None (let go) without it.
         size = filter_size(left.shape, nd, radius)
         scratch = self._array('cnn_filter', (size,), np.float32)
@@ -301,17 +306,21 @@ class StereoPipeline:
         volume = cost_mod.cost_volume(left, right, nd, cfg.cost, cfg.window, kept['cost'],
                                       scale or 1, dtype, cancel)
         lap('cost')
+        total, plain = kept['total'], None
+        if cfg.use_gcp and cfg.plain_check:  # into the volume the GCPs' SGM reuses
+            total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), PLAIN_PATHS, total, cancel)
+            plain = winners(total, False, False, cancel)[0]
+            lap('plain_sgm')
         if cfg.use_gcp:
             gcp = select(cof_c, cof_d, cof_dr, cfg.theta, cfg.gcp_lr_check)
             refine(volume, gcp, cof_d, fixed(cfg.c_hi), fixed(cfg.c_low))
             lap('refine')
-        total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, kept['total'],
-                          cancel)
+        total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, total, cancel)
         self._workspace.update(cost=volume, total=total)
         lap('sgm')
         wta = winners(total, cfg.subpixel, True, cancel)
         lap('wta')
-        return (*wta, gcp, cof_c, cof_d, cof_dr)
+        return (*wta, gcp, cof_c, cof_d, cof_dr, plain)
 
     def _match_cuda(self, left, right, confidence, lap, seconds):
         """
@@ -350,28 +359,32 @@ class StereoPipeline:
                 standardized = torch.stack([(g - m) / s for g, (m, s) in zip(pair, stats)])
             if cfg.use_gcp and confidence is None:
                 cof = device_confidence(self.net, padded_input(standardized), nd, cfg.bf16,
-                                        seconds, cfg.cnn_filter_radius)
+                                        seconds, cfg.matched_radius)
                 lap(None)  # the CNN timed its own stages
             volume = cost_volume(pair if cfg.cost == 'census' else standardized, nd, cfg.cost,
                                  cfg.window, self._array('cuda_cost', shape, vtype),
                                  scale or 1, dtype)
             top = cost_mod.max_cost(cfg.cost, cfg.window) * (scale or 1)
             stage('cost')
-            gcp = None
+            gcp = plain = None
+            total = self._array('cuda_total', shape, vtype)
+            if cfg.use_gcp and cfg.plain_check:  # into the volume the GCPs' SGM reuses
+                total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), PLAIN_PATHS, top, total)
+                plain = winners(total)[0]
+                stage('plain_sgm')
             if cfg.use_gcp:
                 gcp = select_refine(volume, *cof, cfg.theta, fixed(cfg.c_hi), fixed(cfg.c_low),
                                     cfg.gcp_lr_check)
                 top = max(top, fixed(cfg.c_hi))
                 stage('refine')
-            total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, top,
-                              self._array('cuda_total', shape, vtype))
+            total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, top, total)
             self._workspace.update(cuda_cost=volume, cuda_total=total)
             stage('sgm')
             wta = winners(total, cfg.subpixel, True)  # disp, consistent, s_best, s_second
             stage('wta')
             fresh = cof if cfg.use_gcp and confidence is None else []
             wta, fresh = ([a.cpu().numpy() for a in arrays] for arrays in (wta, fresh))
-            gcp = None if gcp is None else gcp.cpu().numpy()
+            gcp, plain = (None if a is None else a.cpu().numpy() for a in (gcp, plain))
             lap('download')
         cof_c, cof_d, cof_dr = fresh or confidence or (None,) * 3
-        return (*wta, gcp, cof_c, cof_d, cof_dr)
+        return (*wta, gcp, cof_c, cof_d, cof_dr, plain)

@@ -21,7 +21,12 @@ What of the winner-takes-all disparity to publish, and how sure each pixel is; R
   A pixel whose costs rule its background out, a low-confidence object standing in front
   of its row, keeps its disparity; with r = 0 every pixel below min_confidence goes;
 - in speckles (OpenCV's filterSpeckles with stereo_image_proc's meaning): connected regions
-  of at most `speckle_size` pixels, neighbours within `speckle_range` px of each other.
+  of at most `speckle_size` pixels, neighbours within `speckle_range` px of each other;
+- more than `plain_check` px nearer than plain SGM, the same costs aggregated without the
+  GCPs: a second opinion without the CNN, last, so that the tests before it do not see the
+  gaps it leaves. Most of the phantom obstacles the GCPs make in grass and bushes go; where
+  plain SGM is as near (a thin pole, a cyclist that the KITTI ground truth misses), the
+  pixel stays (doc/published.md).
 A value of 0 (False) turns each off. The CPU and the CUDA pipeline give the same inputs
 (`sgm.winners`, `sgm_cuda.winners`), so both apply this identically. With `downsample` f
 everything here runs on the matching grid, 1 / f of the images, before the result is blown
@@ -264,16 +269,18 @@ def background_fits(disp, low, costs, cfg):
     return fits
 
 
-def invalidate(disp, consistent, m, cfg, camera=None, confidence=None, costs=None):
+def invalidate(disp, consistent, m, cfg, camera=None, confidence=None, costs=None,
+               plain=None):
     """
     Set NaN in `disp` (float32, in place) where cfg's tests fail; return `disp`.
 
     Every array is on the matching grid (1 / cfg.downsample of the images), `disp` in its
-    pixels; the depth limits and the speckle size and range, given for the full-size images,
-    are scaled to it. `m`: the `margin`; `confidence`: the calibrated confidence (float32)
-    for `min_confidence`, None if there is none (then it is not applied); `costs`: the
-    summed SGM costs for `background_ratio` (see `background_fits`), None: every pixel
-    below min_confidence goes.
+    pixels; the depth limits, the speckle size and range and `plain_check`, given for the
+    full-size images, are scaled to it. `m`: the `margin`; `confidence`: the calibrated
+    confidence (float32) for `min_confidence`, None if there is none (then it is not
+    applied); `costs`: the summed SGM costs for `background_ratio` (see `background_fits`),
+    None: every pixel below min_confidence goes; `plain`: plain SGM's disparity for
+    `plain_check`, None without GCPs (then it is not applied).
     """
     f = cfg.downsample
     if cfg.valid_window:
@@ -295,4 +302,7 @@ def invalidate(disp, consistent, m, cfg, camera=None, confidence=None, costs=Non
     size = cfg.speckle_size // f ** 2
     if size:
         disp[speckles(disp, size, cfg.speckle_range / f)] = np.nan
+    if cfg.plain_check and plain is not None:
+        with np.errstate(invalid='ignore'):
+            disp[disp - plain > np.float32(cfg.plain_check / f)] = np.nan
     return disp

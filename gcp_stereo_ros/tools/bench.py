@@ -132,7 +132,7 @@ def main(argv=None):
         if name == 'cuda_pipeline':  # every CUDA stage: upload, cnn, ..., download
             seconds.update({f'cuda_{k}': v for k, v in breakdown[name].items()})
         elif name in ('pipeline', 'pipeline_fp32'):
-            for stage in ('cnn', 'confidence', 'refine'):
+            for stage in ('cnn', 'confidence', 'plain_sgm', 'refine'):
                 seconds[stage + name[len('pipeline'):]] = breakdown[name][stage]
     peer = seconds['opencv_sgbm_hh']
     ratios = {name: s / peer for name, s in seconds.items() if name != 'opencv_sgbm_hh'}

@@ -4,8 +4,9 @@ python -m gcp_stereo_ros.tools.fit_confidence: fit the confidences beside the CN
 For each `--cnn-filter-radius` r > 0 first the calibration of the CNN confidence
 guided-filtered with it (stereo.cnn_filter), as the training tool fits the unfiltered one:
 P(CNN disparity within 1 px) of the filtered maximum (`train.fit_calibration`), written
-under cnn.calibration_key(r), which theta then reads. Then the confidence of the final
-disparity, for each method, downsample factor and radius.
+under cnn.calibration_key(r), which theta then reads; likewise for r / f, the radius the
+filter runs with at each `--downsample` f (StereoConfig.matched_radius). Then the
+confidence of the final disparity, for each method, downsample factor and radius.
 
 The confidence (stereo.postprocess.Confidence) is P(|d - truth| <= 3 px) of each pixel
 that the search did not cut short. Fitted on the validation frames only (each frame weighted
@@ -32,7 +33,7 @@ import yaml
 from .cli import console_main
 from .evaluate import Runner, select_frames
 from ..evaluation.datasets import load_frame
-from ..stereo.config import DOWNSAMPLE, RANGES, UNFILTERED
+from ..stereo.config import DOWNSAMPLE, RANGES, StereoConfig, UNFILTERED
 from ..stereo.images import subsample, upsample
 from ..stereo.postprocess import (Confidence, confidence_path, CONFIDENCE_PX, cut_short,
                                   FEATURES, features, method_key)
@@ -121,19 +122,23 @@ def main(argv=None):
         args.dataset, split_frames(args.split) if args.split else args.frames)]
     path = confidence_path(args.weights)
     fits = json.loads(path.read_text()) if path.is_file() else {}
-    net = None  # the CNN the calibrations are fitted with, loaded for the first radius > 0
+    # the radii filtered with: each r, and r / f on the matching grid of each factor f
+    matched = sorted({StereoConfig(cnn_filter_radius=radius, downsample=factor).matched_radius
+                      for radius in args.cnn_filter_radius for factor in [1, *args.downsample]
+                      if radius})
+    if matched:
+        from .train import calibration_samples, fit_calibration  # torch is loaded with them
+        from ..stereo.cnn import calibration_key, load_net
+        net = load_net(args.weights or None)
+    for radius in matched:
+        cosine, probability = fit_calibration(*calibration_samples(net, frames, radius))
+        fits[calibration_key(radius)] = {'cosine': cosine.tolist(),
+                                         'probability': probability.tolist(),
+                                         'frames': [frame.name for frame in frames]}
+        path.write_text(json.dumps(fits, indent=1) + '\n')  # the pipelines below read it
+        print(f'{calibration_key(radius)}: {len(frames)} frames, {len(cosine)} knots, '
+              f'P(within 1 px) from {probability[0]:.3f} to {probability[-1]:.3f}')
     for radius in args.cnn_filter_radius:
-        if radius:
-            from .train import calibration_samples, fit_calibration  # torch is loaded with them
-            from ..stereo.cnn import calibration_key, load_net
-            net = net or load_net(args.weights or None)
-            cosine, probability = fit_calibration(*calibration_samples(net, frames, radius))
-            fits[calibration_key(radius)] = {'cosine': cosine.tolist(),
-                                             'probability': probability.tolist(),
-                                             'frames': [frame.name for frame in frames]}
-            path.write_text(json.dumps(fits, indent=1) + '\n')  # the pipelines below read it
-            print(f'{calibration_key(radius)}: {len(frames)} frames, {len(cosine)} knots, '
-                  f'P(within 1 px) from {probability[0]:.3f} to {probability[-1]:.3f}')
         for factor in args.downsample:
             runner = Runner(overrides={'weights': args.weights, 'downsample': factor,
                                        'cnn_filter_radius': radius, **UNFILTERED})
