@@ -85,6 +85,20 @@ def test_confidence_filtered_equals_the_formula(net, tsukuba):
     np.testing.assert_array_equal(cof_dr, confidence(net, left, right, 24)[2])
 
 
+def test_the_filter_gives_the_same_bits_with_any_number_of_threads(net, tsukuba):
+    """The kernels' bands do not depend on the threads: a worker with one gives the same."""
+    import numba
+    left, right = tsukuba.left[:150], tsukuba.right[:150]
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = confidence(net, left, right, 24, radius=RADIUS)
+    finally:
+        numba.set_num_threads(threads)
+    for got, want in zip(confidence(net, left, right, 24, radius=RADIUS), one):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_device_filter_equals_the_numba_kernels(net, tsukuba):
     """The GPU path's torch filter (here on CPU tensors) against the CPU path's kernels."""
     left, right = tsukuba.left[:150], tsukuba.right[:150]
