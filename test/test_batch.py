@@ -16,11 +16,14 @@ EXTRA = "Ray is the optional extra .[cluster]: pip install 'gcp_stereo_ros[clust
 ray = pytest.importorskip('ray', reason=EXTRA)
 from gcp_stereo_ros.tools import bag, batch, evaluate  # noqa: E402, I100 (after the skip)
 import numba  # noqa: E402
+import numpy as np  # noqa: E402
 from rosbags.rosbag2 import Reader  # noqa: E402
+from rosbags.typesys import get_typestore, Stores  # noqa: E402
 import torch  # noqa: E402
 import yaml  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 PARAMS = {'max_disparity': 32}  # the node's defaults otherwise (census, GCPs, shipped weights)
 FRAMES = ['tsukuba', 'venus']  # middlebury_v2, the smallest shared frames
 METHODS = ['census+gcp', 'sad']
@@ -109,7 +112,15 @@ def test_bags_equal_sequential_and_the_broken_one_is_reported(bags, cli_run):
     for name in FRAMES:
         got, expected = messages(out / name), messages(root / 'sequential' / name)
         assert {'/disparity', '/gcp_mask', '/confidence', '/left/image_rect'} <= set(got)
-        assert got == expected, name
+        assert {k: v for k, v in got.items() if k != '/confidence'} == {
+            k: v for k, v in expected.items() if k != '/confidence'}, name
+        # the CNN confidence image: equal but for float rounding (one CI run of the full suite
+        # saw 1-2 ulp in a few pixels of tsukuba's, not reproduced alone or in any other run)
+        for (t1, a), (t2, b) in zip(got['/confidence'], expected['/confidence'], strict=True):
+            a, b = (TYPESTORE.deserialize_cdr(raw, 'sensor_msgs/msg/Image') for raw in (a, b))
+            assert t1 == t2 and a.header == b.header and (a.height, a.width) == (b.height, b.width)
+            np.testing.assert_allclose(a.data.view(np.float32), b.data.view(np.float32),
+                                       rtol=1e-6, atol=0)
 
 
 def test_bags_rerun_skips_existing_outputs(bags, cli_run, local_ray, capsys):
