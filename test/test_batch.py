@@ -114,13 +114,14 @@ def test_bags_equal_sequential_and_the_broken_one_is_reported(bags, cli_run):
         assert {'/disparity', '/gcp_mask', '/confidence', '/left/image_rect'} <= set(got)
         assert {k: v for k, v in got.items() if k != '/confidence'} == {
             k: v for k, v in expected.items() if k != '/confidence'}, name
-        # the CNN confidence image: equal but for float rounding (one CI run of the full suite
-        # saw 1-2 ulp in a few pixels of tsukuba's, not reproduced alone or in any other run)
+        # the CNN confidence image: equal but for float rounding (two CI runs of the full suite,
+        # with a fresh Numba cache, differed by up to 7e-7 in 2 of tsukuba's 110,592 pixels
+        # with the guided filter on; not reproduced when run alone)
         for (t1, a), (t2, b) in zip(got['/confidence'], expected['/confidence'], strict=True):
             a, b = (TYPESTORE.deserialize_cdr(raw, 'sensor_msgs/msg/Image') for raw in (a, b))
             assert t1 == t2 and a.header == b.header and (a.height, a.width) == (b.height, b.width)
             np.testing.assert_allclose(a.data.view(np.float32), b.data.view(np.float32),
-                                       rtol=1e-6, atol=0)
+                                       rtol=0, atol=1e-5)
 
 
 def test_bags_rerun_skips_existing_outputs(bags, cli_run, local_ray, capsys):
