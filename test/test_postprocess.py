@@ -185,6 +185,22 @@ def test_defaults_publish_what_the_match_supports(kitti, name, density, bad3, ne
     assert unchecked['density'] - 4 < r['density'] < unchecked['density'] - 1
 
 
+def test_sad_defaults_leave_plain_check_off(data_dir):
+    # measured (doc/published.md), Lampshade1 at third size, SAD+GCP with SAD's defaults:
+    # 74.8 % published, dense bad3 6.65 %; with plain_check 1.5, as Census has it, 46.4 %
+    # and 29.7 %: plain SGM on SAD costs is wrong across the lamp's textureless shade
+    frame = load_frame(data_dir, 'middlebury2006/thirdsize/Lampshade1')
+    cfg = StereoConfig.for_cost('sad', max_disp=frame.max_disp)
+    assert cfg.plain_check == 0.0 and StereoConfig().plain_check == 1.5
+    pipe = StereoPipeline(cfg)
+    result = pipe(frame.left, frame.right)
+    checked = pipe.with_config(cfg.replace(plain_check=1.5))(
+        frame.left, frame.right, confidence=(result.cof_c, result.cof_d, result.cof_dr))
+    r, c = (error_rates(x.disparity, frame.gt, frame.valid) for x in (result, checked))
+    assert r['density'] > 70.0 and r['bad3'] < 8.0
+    assert c['density'] < r['density'] - 15 and c['bad3'] > r['bad3'] + 10
+
+
 def test_downsample_has_a_confidence_fit_of_its_own(data_dir):
     # measured at downsample 2 on 000070 (doc/speed.md): 85.7 % published, 1.15 % of them
     # wrong; with the full-size fit applied to blown-up features it was 92.7 % and 3.34 %

@@ -4,10 +4,10 @@ The node's parameters, ROS-free: names, descriptions, ranges and their StereoCon
 The node declares them; `gcp-stereo-bag run --params` reads the same YAML file (a shipped
 config, or what `ros2 param dump` wrote), so a bag is processed exactly as the live node would.
 
-Each matching cost has its own window, theta, P1, P2, c_hi and c_low (`census.P2`, ...):
-switching `cost` changes no other parameter, so parameters can be set in any order (as
-`ros2 param load` does, alphabetically) and `ros2 param dump` then `load` restores exactly
-what was dumped.
+Each matching cost has its own window, theta, P1, P2, c_hi, c_low and plain_check
+(`census.P2`, ...): switching `cost` changes no other parameter, so parameters can be set in
+any order (as `ros2 param load` does, alphabetically) and `ros2 param dump` then `load`
+restores exactly what was dumped.
 """
 from dataclasses import dataclass
 import difflib
@@ -74,6 +74,10 @@ def _cost_params(cost):
               'pixel', 'c_hi', cost=cost),
         Param(f'{cost}.c_low', d['c_low'], f'{cost}: cost given to a GCP at its CNN disparity '
               '(<= c_hi)', 'c_low', cost=cost),
+        Param(f'{cost}.plain_check', d['plain_check'], f'{cost}: invalidate where the '
+              'disparity is more than this many px above the one SGM finds on the same costs '
+              'without the GCPs (a second opinion without the CNN; 0 = off)', 'plain_check',
+              cost=cost),
     )
 
 
@@ -81,7 +85,7 @@ _D = StereoConfig()
 PARAMS = (
     Param('cost', _D.cost,
           "matching cost: 'census' or 'sad'; each has its own window, theta, P1, P2, c_hi, "
-          'c_low (census.*, sad.*), which a switch leaves as they are', 'cost'),
+          'c_low, plain_check (census.*, sad.*), which a switch leaves as they are', 'cost'),
     Param('max_disparity', _D.max_disp, 'number of disparities searched: 0 .. max_disparity - 1',
           'max_disp'),
     *_cost_params('census'),
@@ -116,10 +120,6 @@ PARAMS = (
           'end of its range', 'valid_window'),
     Param('lr_check', _D.lr_check, "invalidate where the right view's winner is more than "
           '1 px from the disparity (left-right check)', 'lr_check'),
-    Param('plain_check', _D.plain_check,
-          'invalidate where the disparity is more than this many px above the one SGM finds '
-          'on the same costs without the GCPs (a second opinion without the CNN; 0 = off)',
-          'plain_check'),
     Param('uniqueness_ratio', _D.uniqueness_ratio,
           'invalidate where a disparity more than 1 px from the winner has a summed SGM cost '
           "less than this many percent above the winner's (OpenCV's uniquenessRatio; 0 = off)",

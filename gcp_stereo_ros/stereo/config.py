@@ -15,12 +15,14 @@ from . import cost as cost_mod
 from .sgm import PATHS
 
 # Defaults for each matching cost, chosen by cross-validation on the validation frames
-# (doc/method.md); theta is on the calibrated scale (cnn.calibrated).
+# (doc/method.md); theta is on the calibrated scale (cnn.calibrated). plain_check is off for
+# SAD: plain SGM on SAD costs is wrong across the textureless Middlebury scenes, so the check
+# removed most of those pixels (doc/published.md).
 COST_DEFAULTS = {
     'census': {'p1': 12.0, 'p2': 128.0, 'theta': 0.2, 'c_hi': 200.0, 'c_low': 2.0,
-               'gcp_lr_check': True},
+               'gcp_lr_check': True, 'plain_check': 1.5},
     'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.2, 'c_hi': 5.0, 'c_low': 0.001,
-            'gcp_lr_check': True},
+            'gcp_lr_check': True, 'plain_check': 0.0},
 }
 # The paper's values (Zhong et al., section 4): its theta is read on our calibrated scale.
 PAPER = {
@@ -149,7 +151,8 @@ class StereoConfig:
         Pixels: with use_gcp, invalidate where the disparity is more than this above the
         one that SGM finds on the same costs without the GCPs (plain SGM, a second opinion
         that needs no CNN: a near obstacle the GCPs alone put there); in [0, 1024], 0 = off
-        (full-size pixels: check / f on the matching grid). Costs a second SGM pass.
+        (full-size pixels: check / f on the matching grid). Costs a second SGM pass. Each
+        cost has its own default: census 1.5, sad 0.
     uniqueness_ratio : float
         Percent, OpenCV's uniquenessRatio: invalidate where a disparity more than 1 px
         from the winner has a summed SGM cost less than this many percent above the
@@ -212,7 +215,7 @@ class StereoConfig:
     # rejects are right; its agreement is a confidence feature instead.
     valid_window: bool = True
     lr_check: bool = False
-    plain_check: float = 1.5
+    plain_check: float = COST_DEFAULTS['census']['plain_check']
     uniqueness_ratio: float = 1.0
     speckle_size: int = 100
     speckle_range: int = 4
