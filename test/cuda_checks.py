@@ -257,13 +257,16 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
             assert np.mean(~np.isclose(result.disparity, cpu.disparity, atol=1e-4)) < 0.01
             np.testing.assert_allclose(got, want, rtol=1e-5)
         assert {'upload', 'cost', 'refine', 'sgm', 'wta', 'download'} <= set(result.seconds)
-    # plain SGM for plain_check, into the path sums the GCPs' SGM then reuses
+    # plain SGM for gcp_plain_check and plain_check, into the path sums the GCPs' SGM reuses
     cfg = StereoConfig.for_cost('census', 'paper', max_disp=ND, paths=4, bf16=False,
-                                plain_check=1.0)
+                                plain_check=1.0, gcp_plain_check=True)
     cpu = StereoPipeline(cfg)(*crop, confidence=cnn)
     result = pipe.with_config(cfg.replace(device='cuda'))(*crop, confidence=cnn)
+    np.testing.assert_array_equal(result.gcp, cpu.gcp)
     np.testing.assert_array_equal(result.disparity, cpu.disparity)
     assert np.isnan(cpu.disparity).mean() > 0.001 and 'plain_sgm' in result.seconds
+    unchecked = StereoPipeline(cfg.replace(gcp_plain_check=False))(*crop, confidence=cnn)
+    assert cpu.gcp.sum() < unchecked.gcp.sum()
     own = pipe.with_config(StereoConfig.for_cost('census', max_disp=ND, paths=4, bf16=False,
                                                  cnn_filter_radius=0, device='cuda'))(*crop)
     np.testing.assert_allclose(own.cof_c, cnn[0], atol=2e-5)  # as in test_cnn

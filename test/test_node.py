@@ -323,11 +323,13 @@ def test_set_parameters_live(harness, pair):
 
     # Switching cost uses SAD's own values and changes no other parameter.
     assert all(r.successful for r in harness.set_params({'sad.P2': 20.0, 'cost': 'sad'}))
-    names = ('theta', 'P1', 'P2', 'c_hi', 'c_low', 'plain_check')
+    names = ('theta', 'P1', 'P2', 'c_hi', 'c_low', 'gcp_plain_check', 'plain_check')
     assert {n: harness.node.get_parameter(f'census.{n}').value for n in names} == {
-        'theta': 0.6, 'P1': 6.0, 'P2': 100.0, 'c_hi': 200.0, 'c_low': 2.0, 'plain_check': 1.5}
+        'theta': 0.6, 'P1': 6.0, 'P2': 100.0, 'c_hi': 200.0, 'c_low': 2.0,
+        'gcp_plain_check': True, 'plain_check': 1.5}
     assert {n: harness.node.get_parameter(f'sad.{n}').value for n in names} == {
-        'theta': 0.2, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001, 'plain_check': 0.0}
+        'theta': 0.2, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001,
+        'gcp_plain_check': False, 'plain_check': 0.0}
     harness.send_pair(left, right, 'rgb8', 8_000_000_000)
     wait_for(lambda: stamp_of(harness.disparity[-1]) == 8_000_000_000,
              'disparity after cost switch')

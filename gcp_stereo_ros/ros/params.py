@@ -4,10 +4,10 @@ The node's parameters, ROS-free: names, descriptions, ranges and their StereoCon
 The node declares them; `gcp-stereo-bag run --params` reads the same YAML file (a shipped
 config, or what `ros2 param dump` wrote), so a bag is processed exactly as the live node would.
 
-Each matching cost has its own window, theta, P1, P2, c_hi, c_low and plain_check
-(`census.P2`, ...): switching `cost` changes no other parameter, so parameters can be set in
-any order (as `ros2 param load` does, alphabetically) and `ros2 param dump` then `load`
-restores exactly what was dumped.
+Each matching cost has its own window, theta, P1, P2, c_hi, c_low, gcp_plain_check and
+plain_check (`census.P2`, ...): switching `cost` changes no other parameter, so parameters
+can be set in any order (as `ros2 param load` does, alphabetically) and `ros2 param dump`
+then `load` restores exactly what was dumped.
 """
 from dataclasses import dataclass
 import difflib
@@ -74,6 +74,9 @@ def _cost_params(cost):
               'pixel', 'c_hi', cost=cost),
         Param(f'{cost}.c_low', d['c_low'], f'{cost}: cost given to a GCP at its CNN disparity '
               '(<= c_hi)', 'c_low', cost=cost),
+        Param(f'{cost}.gcp_plain_check', d['gcp_plain_check'], f'{cost}: GCPs only where the '
+              'CNN disparity is at most 1 px above the one SGM finds on the same costs '
+              'without the GCPs', 'gcp_plain_check', cost=cost),
         Param(f'{cost}.plain_check', d['plain_check'], f'{cost}: invalidate where the '
               'disparity is more than this many px above the one SGM finds on the same costs '
               'without the GCPs (a second opinion without the CNN; 0 = off)', 'plain_check',
@@ -85,7 +88,8 @@ _D = StereoConfig()
 PARAMS = (
     Param('cost', _D.cost,
           "matching cost: 'census' or 'sad'; each has its own window, theta, P1, P2, c_hi, "
-          'c_low, plain_check (census.*, sad.*), which a switch leaves as they are', 'cost'),
+          'c_low, gcp_plain_check, plain_check (census.*, sad.*), which a switch leaves as '
+          'they are', 'cost'),
     Param('max_disparity', _D.max_disp, 'number of disparities searched: 0 .. max_disparity - 1',
           'max_disp'),
     *_cost_params('census'),

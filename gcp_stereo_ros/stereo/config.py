@@ -15,21 +15,21 @@ from . import cost as cost_mod
 from .sgm import PATHS
 
 # Defaults for each matching cost, chosen by cross-validation on the validation frames
-# (doc/method.md); theta is on the calibrated scale (cnn.calibrated). plain_check is off for
-# SAD: plain SGM on SAD costs is wrong across the textureless Middlebury scenes, so the check
-# removed most of those pixels (doc/published.md).
+# (doc/method.md); theta is on the calibrated scale (cnn.calibrated). plain_check and
+# gcp_plain_check are off for SAD: plain SGM on SAD costs is wrong across the textureless
+# Middlebury scenes (doc/published.md, doc/method.md).
 COST_DEFAULTS = {
     'census': {'p1': 12.0, 'p2': 128.0, 'theta': 0.2, 'c_hi': 200.0, 'c_low': 2.0,
-               'gcp_lr_check': True, 'plain_check': 1.5},
+               'gcp_lr_check': True, 'gcp_plain_check': True, 'plain_check': 1.5},
     'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.2, 'c_hi': 5.0, 'c_low': 0.001,
-            'gcp_lr_check': True, 'plain_check': 0.0},
+            'gcp_lr_check': True, 'gcp_plain_check': False, 'plain_check': 0.0},
 }
 # The paper's values (Zhong et al., section 4): its theta is read on our calibrated scale.
 PAPER = {
     'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3,
-               'gcp_lr_check': False},
+               'gcp_lr_check': False, 'gcp_plain_check': False},
     'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001,
-            'gcp_lr_check': False},
+            'gcp_lr_check': False, 'gcp_plain_check': False},
 }
 # Every invalidation off (stereo.postprocess). The paper published every integer WTA
 # disparity: its preset has this and no sub-pixel fit.
@@ -68,7 +68,8 @@ CHOICES = {'cost': cost_mod.COSTS, 'paths': PATHS, 'downsample': DOWNSAMPLE, 'bf
 # The fields the CNN's outputs (StereoResult cof_c, cof_d, cof_dr) depend on: a run may reuse
 # another's outputs (StereoPipeline's `confidence`) only where these are the same.
 CNN_FIELDS = ('weights', 'device', 'bf16', 'max_disp', 'downsample', 'cnn_filter_radius')
-FLAGS = ('use_gcp', 'gcp_lr_check', 'subpixel', 'median', 'valid_window', 'lr_check')
+FLAGS = ('use_gcp', 'gcp_lr_check', 'gcp_plain_check', 'subpixel', 'median', 'valid_window',
+         'lr_check')
 DEVICE = re.compile(r'cpu|cuda(:\d+)?')
 
 
@@ -125,6 +126,10 @@ class StereoConfig:
     gcp_lr_check : bool
         GCPs only where the right view's CNN disparity agrees within 1 px (not in the
         paper).
+    gcp_plain_check : bool
+        GCPs only where the CNN disparity is at most 1 px above the one SGM finds on the
+        same costs without the GCPs (plain SGM, as for plain_check; not in the paper).
+        Each cost has its own default: census True, sad False.
     cnn_filter_radius : int
         Pixels: the CNN confidence volume is guided-filtered (the left image as the guide,
         windows of 2 r + 1 px) before the GCPs' disparities and confidences are taken from
@@ -202,6 +207,7 @@ class StereoConfig:
     c_hi: float = COST_DEFAULTS['census']['c_hi']
     c_low: float = COST_DEFAULTS['census']['c_low']
     gcp_lr_check: bool = COST_DEFAULTS['census']['gcp_lr_check']
+    gcp_plain_check: bool = COST_DEFAULTS['census']['gcp_plain_check']
     cnn_filter_radius: int = 4
     weights: str = ''
     device: str = 'cpu'
@@ -222,7 +228,7 @@ class StereoConfig:
     min_depth: float = 0.3
     max_depth: float = 0.0
     min_confidence: float = 0.9
-    background_ratio: float = 1.2
+    background_ratio: float = 1.1
     downsample: int = 1
     memory_limit_mb: int = 3072
 

@@ -8,7 +8,8 @@ from .gcp import levels
 
 
 @cuda.jit
-def _select_refine(cost, cof_c, cof_d, cof_dr, theta, lr_check, c_hi, c_low, gcp):
+def _select_refine(cost, cof_c, cof_d, cof_dr, plain, theta, lr_check, plain_check, c_hi, c_low,
+                   gcp):
     """One thread per pixel: the GCP rule of `gcp.select`, then the refinement of `refine`."""
     h, w, nd = cost.shape
     i = cuda.grid(1)
@@ -19,6 +20,8 @@ def _select_refine(cost, cof_c, cof_d, cof_dr, theta, lr_check, c_hi, c_low, gcp
     keep = cof_c[y, x] > theta
     if keep and lr_check:  # gcp.right_view_agrees with a tolerance of 1 px
         keep = x - d >= 0 and abs(cof_dr[y, x - d] - d) <= 1
+    if keep and plain_check:  # at most 1 px above plain SGM's disparity
+        keep = d - plain[y, x] <= 1
     gcp[y, x] = keep
     if keep:
         if 0 <= d < nd:
@@ -28,15 +31,18 @@ def _select_refine(cost, cof_c, cof_d, cof_dr, theta, lr_check, c_hi, c_low, gcp
             cost[y, x, k] = c_hi
 
 
-def select_refine(cost, cof_c, cof_d, cof_dr, theta, c_hi, c_low, lr_check=False):
+def select_refine(cost, cof_c, cof_d, cof_dr, theta, c_hi, c_low, lr_check=False, plain=None):
     """
     Refine `cost` in place with the GCPs `gcp.select` picks; return the GCP mask.
 
     Tensors on the device: `cost` (H, W, D) float32 or uint16, the float32 confidence
-    `cof_c` and the int32 CNN disparities `cof_d`, `cof_dr` (H, W). The mask is bool (H, W).
+    `cof_c`, the int32 CNN disparities `cof_d`, `cof_dr` and plain SGM's float32 disparity
+    `plain` (H, W; None: not checked). The mask is bool (H, W).
     """
     c_hi, c_low = levels(gpu.numpy_type(cost), c_hi, c_low)
     gcp = torch.empty(cost.shape[:2], dtype=torch.bool, device=cost.device)
-    gpu.launch(_select_refine, gcp.numel(), cost, cof_c, cof_d, cof_dr, np.float32(theta),
-               bool(lr_check), c_hi, c_low, gcp)
+    checked = plain is not None  # else a stand-in the kernel never reads
+    plain = plain if checked else torch.zeros((1, 1), dtype=torch.float32, device=cost.device)
+    gpu.launch(_select_refine, gcp.numel(), cost, cof_c, cof_d, cof_dr, plain,
+               np.float32(theta), bool(lr_check), checked, c_hi, c_low, gcp)
     return gcp

@@ -20,8 +20,9 @@ from .memory import call_glibc, check_memory, volume_arithmetic
 from .postprocess import Confidence, features, invalidate, margin
 from .sgm import aggregate, costs_at, winners
 
-# The paths of plain SGM for `plain_check` (horizontal and vertical): on the validation
-# frames as good a second opinion as 16, in a quarter of the time (doc/published.md).
+# The paths of plain SGM for `plain_check` and `gcp_plain_check` (horizontal and
+# vertical): on the validation frames as good a second opinion as 16, in a quarter of the
+# time (doc/published.md).
 PLAIN_PATHS = 4
 
 
@@ -279,7 +280,8 @@ class StereoPipeline:
 
         On the CPU. The first four are `sgm.winners`' outputs (the left-right agreement always
         computed, for the confidence); `plain`: the integer disparity of SGM on the costs
-        before the GCPs refine them, for `plain_check` (None without it or without GCPs).
+        before the GCPs refine them, for `gcp_plain_check` and `plain_check` (None without
+        both or without GCPs).
         """
         cfg = self.config
         nd = cfg.matched_disp
@@ -307,12 +309,14 @@ class StereoPipeline:
                                       scale or 1, dtype, cancel)
         lap('cost')
         total, plain = kept['total'], None
-        if cfg.use_gcp and cfg.plain_check:  # into the volume the GCPs' SGM reuses
+        if cfg.use_gcp and (cfg.plain_check or cfg.gcp_plain_check):
+            # plain SGM, into the path sums the GCPs' SGM then reuses
             total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), PLAIN_PATHS, total, cancel)
             plain = winners(total, False, False, cancel)[0]
             lap('plain_sgm')
         if cfg.use_gcp:
-            gcp = select(cof_c, cof_d, cof_dr, cfg.theta, cfg.gcp_lr_check)
+            gcp = select(cof_c, cof_d, cof_dr, cfg.theta, cfg.gcp_lr_check,
+                         plain if cfg.gcp_plain_check else None)
             refine(volume, gcp, cof_d, fixed(cfg.c_hi), fixed(cfg.c_low))
             lap('refine')
         total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, total, cancel)
@@ -368,13 +372,14 @@ class StereoPipeline:
             stage('cost')
             gcp = plain = None
             total = self._array('cuda_total', shape, vtype)
-            if cfg.use_gcp and cfg.plain_check:  # into the volume the GCPs' SGM reuses
+            if cfg.use_gcp and (cfg.plain_check or cfg.gcp_plain_check):
+                # plain SGM, into the path sums the GCPs' SGM then reuses
                 total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), PLAIN_PATHS, top, total)
                 plain = winners(total)[0]
                 stage('plain_sgm')
             if cfg.use_gcp:
                 gcp = select_refine(volume, *cof, cfg.theta, fixed(cfg.c_hi), fixed(cfg.c_low),
-                                    cfg.gcp_lr_check)
+                                    cfg.gcp_lr_check, plain if cfg.gcp_plain_check else None)
                 top = max(top, fixed(cfg.c_hi))
                 stage('refine')
             total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, top, total)
