@@ -311,6 +311,11 @@ class StereoConfig:
         return max(1, self.cnn_filter_radius // self.downsample) if self.cnn_filter_radius else 0
 
     @property
+    def plain_sgm(self):
+        """Whether plain SGM runs: with GCPs, for gcp_plain_check or plain_check."""
+        return self.use_gcp and bool(self.gcp_plain_check or self.plain_check)
+
+    @property
     def matched_disp(self):
         """Return the disparities searched at the matching resolution: max_disp / downsample."""
         return -(-self.max_disp // self.downsample)

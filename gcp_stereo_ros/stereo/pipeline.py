@@ -309,8 +309,7 @@ class StereoPipeline:
                                       scale or 1, dtype, cancel)
         lap('cost')
         total, plain = kept['total'], None
-        if cfg.use_gcp and (cfg.plain_check or cfg.gcp_plain_check):
-            # plain SGM, into the path sums the GCPs' SGM then reuses
+        if cfg.plain_sgm:  # into the path sums the GCPs' SGM then reuses
             total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), PLAIN_PATHS, total, cancel)
             plain = winners(total, False, False, cancel)[0]
             lap('plain_sgm')
@@ -372,8 +371,7 @@ class StereoPipeline:
             stage('cost')
             gcp = plain = None
             total = self._array('cuda_total', shape, vtype)
-            if cfg.use_gcp and (cfg.plain_check or cfg.gcp_plain_check):
-                # plain SGM, into the path sums the GCPs' SGM then reuses
+            if cfg.plain_sgm:  # into the path sums the GCPs' SGM then reuses
                 total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), PLAIN_PATHS, top, total)
                 plain = winners(total)[0]
                 stage('plain_sgm')
