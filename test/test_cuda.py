@@ -89,3 +89,19 @@ def test_cuda_kernels_compile_for_a_gpu(data_dir, monkeypatch):
     # every kernel once per volume type it meets (the WTA always finds the right view's
     # winners, for the confidence)
     assert len(compiled) == 14 and all('.entry' in ptx for ptx in compiled.values())
+
+
+def test_the_gpu_confidence_runs_float32_as_ieee_not_tf32():
+    """On an H200, TF32 convolutions moved the confidence of bf16: false by up to 1.3e-3."""
+    from gcp_stereo_ros.stereo.cnn_cuda import ieee_float32
+    backends = (torch.backends.cudnn.conv, torch.backends.cuda.matmul)
+    before = [b.fp32_precision for b in backends]
+    try:
+        for b in backends:  # what cuDNN does by default, and what a training script may ask
+            b.fp32_precision = 'tf32'
+        with ieee_float32():
+            assert [b.fp32_precision for b in backends] == ['ieee', 'ieee']
+        assert [b.fp32_precision for b in backends] == ['tf32', 'tf32']
+    finally:
+        for b, precision in zip(backends, before):
+            b.fp32_precision = precision
