@@ -10,8 +10,8 @@ from gcp_stereo_ros.evaluation.metrics import error_rates
 from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from gcp_stereo_ros.stereo.postprocess import (background_fits, backgrounds, Confidence,
-                                               cut_short, invalidate, margin, speckles,
-                                               valid_window)
+                                               cut_short, FEATURES, invalidate, margin,
+                                               speckles, valid_window)
 from gcp_stereo_ros.stereo.sgm import winners
 import numpy as np
 import pytest
@@ -270,6 +270,7 @@ def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
                           **UNFILTERED)
     result = StereoPipeline(config)(frame.left, frame.right)
     feats, correct = fit_confidence.samples(result, config, frame.gt, frame.valid)
-    assert len(feats) == len(correct) > 10000 and 0.9 < correct.mean() < 1.0
+    assert feats.shape == (len(FEATURES), len(correct)) and len(correct) > 10000
+    assert 0.9 < correct.mean() < 1.0
     sure = fits[1](feats)
     assert abs(sure.mean() - correct.mean()) < 0.05  # calibrated on the frames it was fitted on

@@ -58,9 +58,9 @@ def logistic(x, y, w):
 
 
 def fit(feats, correct, weight):
-    """Return the Confidence fitted on samples (features, bool correct, weight)."""
+    """Return the Confidence fitted on n samples: features (len(FEATURES), n), correct, weight."""
     from .train import fit_calibration  # torch is loaded with it
-    coef = logistic(feats, correct.astype(np.float64), weight)
+    coef = logistic(feats.T, correct.astype(np.float64), weight)
     model = Confidence(coef, ([0.0, 1.0], [0.0, 1.0]))
     knots = fit_calibration(model.score(feats).astype(np.float64), correct, weight)
     return Confidence(coef, knots)
@@ -68,7 +68,9 @@ def fit(feats, correct, weight):
 
 def samples(result, config, gt, valid):
     """
-    Return (features, correct) of the pixels with ground truth that `valid_window` keeps.
+    Return (features, correct) of the n pixels with ground truth that `valid_window` keeps.
+
+    features: (len(FEATURES), n) float32, correct: (n,) bool.
 
     `result`: of `config` with every invalidation off. The features are computed on the
     matching grid (1 / downsample), as the pipeline computes them; each full-size pixel is a
@@ -85,8 +87,9 @@ def samples(result, config, gt, valid):
     sel = ~upsample(cut_short(disp, config), f, shape) & np.isfinite(gt)
     if valid is not None:
         sel &= valid
-    feats = upsample(features(disp, consistent, m, cof_c, cof_d, gcp), f, shape)
-    return feats[sel], np.abs(result.disparity[sel] - gt[sel]) <= CONFIDENCE_PX
+    feats = np.stack([upsample(plane, f, shape)[sel]
+                      for plane in features(disp, consistent, m, cof_c, cof_d, gcp)])
+    return feats, np.abs(result.disparity[sel] - gt[sel]) <= CONFIDENCE_PX
 
 
 def split_frames(path):
@@ -151,7 +154,9 @@ def main(argv=None):
                     config = runner.config(method, frame.max_disp)
                     feats, correct = samples(result, config, frame.gt, frame.valid)
                     parts.append((feats, correct, np.full(len(correct), 1.0 / len(correct))))
-                model = fit(*(np.concatenate(a) for a in zip(*parts)))
+                feats, correct, weight = zip(*parts)
+                model = fit(np.concatenate(feats, axis=1), np.concatenate(correct),
+                            np.concatenate(weight))
                 key = method_key(config)
                 fits[key] = {'features': list(FEATURES), 'coef': model.coef.tolist(),
                              'knots': [k.tolist() for k in model.knots],
