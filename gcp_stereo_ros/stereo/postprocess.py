@@ -198,7 +198,7 @@ class Confidence:
 
 @njit(parallel=True, cache=True)
 def _interp(x, xp, fp):
-    """Return np.interp(x, xp, fp) of (H, W) `x` as float32, the rows in parallel."""
+    """Return np.interp(x, xp, fp) as float32, the rows (first axis) of `x` in parallel."""
     out = np.empty(x.shape, np.float32)
     for row in prange(x.shape[0]):
         out[row] = np.interp(x[row], xp, fp)
@@ -278,7 +278,8 @@ def background_fits(disp, low, costs, cfg):
     """
     rows, cols, at = _lookups(disp, backgrounds(disp, low), cfg.matched_disp - 1)
     s = costs(rows, cols, at).astype(np.float64)
-    kept = s[:, :3].min(1) > cfg.background_ratio * s[:, 3]
+    background = np.minimum(np.minimum(s[:, 0], s[:, 1]), s[:, 2])  # not .min(1): 10x slower
+    kept = background > cfg.background_ratio * s[:, 3]
     fits = low.copy()
     fits[rows[kept], cols[kept]] = False
     return fits
