@@ -36,7 +36,11 @@ import matplotlib.pyplot as plt  # noqa: E402, I100  (after choosing the headles
 
 
 def parse_grid(items):
-    """`name=lo:hi:step` or `name=v1,v2,...` -> {name: [values]} (StereoConfig field names)."""
+    """
+    `name=lo:hi:step` or `name=v1,v2,...` -> {name: [values]} (StereoConfig field names).
+
+    A list takes numbers and true/false (gcp_lr_check=true,false).
+    """
     grid = {}
     for item in items:
         name, _, spec = item.partition('=')
@@ -45,7 +49,7 @@ def parse_grid(items):
                 lo, hi, step = (float(v) for v in spec.split(':'))
                 values = [round(v, 6) for v in np.arange(lo, hi + step / 2, step)]
             else:
-                values = [float(v) if '.' in v or 'e' in v else int(v) for v in spec.split(',')]
+                values = [_grid_value(v) for v in spec.split(',')]
         except (ValueError, ZeroDivisionError):
             values = []
         if name not in FIELDS or not values:
@@ -53,6 +57,18 @@ def parse_grid(items):
                              f'{FIELDS}, got {item!r}')
         grid[name] = values
     return grid
+
+
+def _grid_value(text):
+    """Return the int, float or bool (true, false) that `text` spells; ValueError if none."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    if text.lower() not in ('true', 'false'):
+        raise ValueError(text)
+    return text.lower() == 'true'
 
 
 def sweep(args):
@@ -121,8 +137,11 @@ def _plot_sweep(rows, grid, best, method, path):
         xs = [r[x_name] for r in sel]
         for ax, key in zip(axes, keys):
             ax.plot(xs, [r[key] for r in sel], marker='.', label=frame)
+    switch = all(isinstance(v, bool) for v in grid[x_name])
     for ax, title in zip(axes, ('error > 3 px (%)', 'GCP density (% of GT pixels)',
                                 'GCP accuracy (%)')):
+        if switch:
+            ax.set_xticks([False, True], ['false', 'true'])
         ax.set_xlabel(x_name)
         ax.set_title(f'{method}: {title}')
         ax.grid(alpha=0.3)
