@@ -28,9 +28,12 @@ setup(
     # gcp-stereo-batch on Ray, `.[cuda]` for device cuda (numba-cuda's kernels; a GPU also
     # needs a CUDA build of torch). colcon test picks its runner from 'test' (setuptools no
     # longer keeps tests_require). requirements.txt pins all of them for `make venv`.
+    # numba-cuda 0.30's numpy overloads name np.row_stack, which numpy 2.5 removed: every
+    # kernel failed to compile on a GPU machine that had numpy 2.5.
     extras_require={
         'cluster': ['ray'],
-        'cuda': ['numba-cuda', 'cuda-bindings', 'cuda-core', 'nvidia-nvvm', 'nvidia-cuda-nvrtc'],
+        'cuda': ['numba-cuda', 'cuda-bindings', 'cuda-core', 'nvidia-nvvm', 'nvidia-cuda-nvrtc',
+                 'numpy<2.5'],
         'test': ['pytest'],
     },
     entry_points={
