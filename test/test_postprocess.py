@@ -10,8 +10,8 @@ from gcp_stereo_ros.evaluation.metrics import error_rates
 from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from gcp_stereo_ros.stereo.postprocess import (background_fits, backgrounds, Confidence,
-                                               cut_short, FEATURES, invalidate, margin,
-                                               speckles, valid_window)
+                                               cut_short, FEATURES, features, invalidate,
+                                               margin, speckles, valid_window)
 from gcp_stereo_ros.stereo.sgm import winners
 import numpy as np
 import pytest
@@ -274,3 +274,28 @@ def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
     assert 0.9 < correct.mean() < 1.0
     sure = fits[1](feats)
     assert abs(sure.mean() - correct.mean()) < 0.05  # calibrated on the frames it was fitted on
+
+
+def test_the_gpu_twins_of_the_confidence_equal_the_host(data_dir):
+    """postprocess_cuda (torch, here on the CPU) against postprocess, on KITTI 000070."""
+    torch = pytest.importorskip('torch')
+    from gcp_stereo_ros.stereo import postprocess_cuda
+    frame = load_frame(data_dir, 'kitti2012/000070_10')
+    pipe = StereoPipeline(StereoConfig(bf16=False, **UNFILTERED))
+    r = pipe(frame.left, frame.right)
+    _, _, s_best, s_second = winners(pipe._workspace['total'], True, True)
+    on = [torch.from_numpy(a) for a in (s_best, s_second)]
+    np.testing.assert_array_equal(postprocess_cuda.margin(*on).numpy(), margin(s_best, s_second))
+    for rows, cols in ((slice(None), slice(None)), (slice(100, 108), slice(600, 616))):
+        # the whole frame, and a cut smaller than the 25 px window (borders reflected again)
+        host = [None if a is None else np.ascontiguousarray(a[rows, cols])
+                for a in (r.disparity, r.consistent, r.margin, r.cof_c, r.cof_d, r.gcp)]
+        want = features(*host)
+        got = postprocess_cuda.features(*(torch.from_numpy(a) for a in host))
+        np.testing.assert_allclose(got.numpy(), want, atol=2e-6, rtol=0)
+        np.testing.assert_allclose(postprocess_cuda.calibrated(pipe.fit, got).numpy(),
+                                   pipe.fit(want), atol=1e-5, rtol=0)
+        host[3:] = None, None, None  # without GCPs
+        np.testing.assert_allclose(postprocess_cuda.features(
+            *(None if a is None else torch.from_numpy(a) for a in host)).numpy(),
+            features(*host), atol=2e-6, rtol=0)

@@ -232,13 +232,10 @@ class StereoPipeline:
             outputs = self._match(left, right, confidence, lap, seconds, cancel)
         else:
             outputs = self._match_cuda(left, right, confidence, lap, seconds)
-        disp, consistent, s_best, s_second, gcp, cof_c, cof_d, cof_dr, plain = outputs
-        m = margin(s_best, s_second)
-        del s_best, s_second
+        disp, consistent, m, sure, gcp, cof_c, cof_d, cof_dr, plain = outputs
         if cfg.median:
             disp = cv2.medianBlur(disp, 3)
-        sure = None
-        if self.fit is not None:
+        if self.fit is not None and sure is None:
             sure = self.fit(features(disp, consistent, m, cof_c, cof_d, gcp))
             lap('disparity_confidence')
         invalidate(disp, consistent, m, cfg, camera, sure, self.summed_costs, plain)
@@ -276,12 +273,13 @@ class StereoPipeline:
 
     def _match(self, left, right, confidence, lap, seconds, cancel):
         """
-        Return (disparity, consistent, s_best, s_second, gcp, cof_c, cof_d, cof_dr, plain).
+        Return (disparity, consistent, margin, sure, gcp, cof_c, cof_d, cof_dr, plain).
 
-        On the CPU. The first four are `sgm.winners`' outputs (the left-right agreement always
-        computed, for the confidence); `plain`: the integer disparity of SGM on the costs
-        before the GCPs refine them, for `gcp_plain_check` and `plain_check` (None without
-        both or without GCPs).
+        On the CPU. The disparity and the left-right agreement (always computed, for the
+        confidence) are `sgm.winners`', `margin` the `postprocess.margin` of its costs;
+        `sure`: the calibrated confidence, None here (the caller computes it, after the
+        median); `plain`: the integer disparity of SGM on the costs before the GCPs refine
+        them, for `gcp_plain_check` and `plain_check` (None without both or without GCPs).
         """
         cfg = self.config
         nd = cfg.matched_disp
@@ -321,9 +319,10 @@ class StereoPipeline:
         total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, total, cancel)
         self._workspace.update(cost=volume, total=total)
         lap('sgm')
-        wta = winners(total, cfg.subpixel, True, cancel)
+        disp, consistent, s_best, s_second = winners(total, cfg.subpixel, True, cancel)
         lap('wta')
-        return (*wta, gcp, cof_c, cof_d, cof_dr, plain)
+        return (disp, consistent, margin(s_best, s_second), None, gcp, cof_c, cof_d, cof_dr,
+                plain)
 
     def _match_cuda(self, left, right, confidence, lap, seconds):
         """
@@ -331,11 +330,12 @@ class StereoPipeline:
 
         One upload of the pair (and of `confidence` if given), the volumes stay in GPU
         memory, one download of the outputs. The device is synchronized at each stage's end,
-        so that the stage times are the GPU's.
+        so that the stage times are the GPU's. The calibrated confidence is computed there
+        too (`postprocess_cuda`), but with `median`, which runs on the host before it.
         """
         import torch
 
-        from . import gpu
+        from . import gpu, postprocess_cuda
         from .cnn import padded_input
         from .cnn_cuda import device_confidence
         from .cost_cuda import cost_volume
@@ -369,7 +369,7 @@ class StereoPipeline:
                                  scale or 1, dtype)
             top = cost_mod.max_cost(cfg.cost, cfg.window) * (scale or 1)
             stage('cost')
-            gcp = plain = None
+            gcp = plain = sure = None
             total = self._array('cuda_total', shape, vtype)
             if cfg.plain_sgm:  # into the path sums the GCPs' SGM then reuses
                 total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), PLAIN_PATHS, top, total)
@@ -383,11 +383,17 @@ class StereoPipeline:
             total = aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, top, total)
             self._workspace.update(cuda_cost=volume, cuda_total=total)
             stage('sgm')
-            wta = winners(total, cfg.subpixel, True)  # disp, consistent, s_best, s_second
+            disp, consistent, s_best, s_second = winners(total, cfg.subpixel, True)
+            m = postprocess_cuda.margin(s_best, s_second)
             stage('wta')
+            if self.fit is not None and not cfg.median:
+                sure = postprocess_cuda.calibrated(self.fit, postprocess_cuda.features(
+                    disp, consistent, m, *(cof[:2] if cfg.use_gcp else (None, None)), gcp))
+                stage('disparity_confidence')
             fresh = cof if cfg.use_gcp and confidence is None else []
-            wta, fresh = ([a.cpu().numpy() for a in arrays] for arrays in (wta, fresh))
-            gcp, plain = (None if a is None else a.cpu().numpy() for a in (gcp, plain))
+            disp, consistent, m, sure, gcp, plain, *fresh = (
+                None if a is None else a.cpu().numpy()
+                for a in (disp, consistent, m, sure, gcp, plain, *fresh))
             lap('download')
         cof_c, cof_d, cof_dr = fresh or confidence or (None,) * 3
-        return (*wta, gcp, cof_c, cof_d, cof_dr, plain)
+        return disp, consistent, m, sure, gcp, cof_c, cof_d, cof_dr, plain

@@ -1,0 +1,76 @@
+"""
+The confidence of the published disparity on a GPU: torch twins of `postprocess`'s.
+
+`margin`, `features` and `calibrated` (a `postprocess.Confidence` applied) compute on the
+device what the host computed after the download, which was half of a KITTI pair's time on
+an H200 (doc/speed.md). The results equal the host's within float rounding: cv2's box
+filter sums in float64, torch's in float32, so the window means differ in the last bits.
+"""
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .postprocess import AROUND, FEATURES, WIDE
+
+
+def margin(s_best, s_second):
+    """Return `postprocess.margin` of device tensors."""
+    m = 1.0 - s_best.double() / s_second.double()
+    return torch.where(torch.isfinite(m), m.clamp(0.0, 1.0), 1.0).float()
+
+
+def _reflect_101(n, pad):
+    """Return the indices of 0 .. n - 1 padded by `pad` as cv2's BORDER_REFLECT_101."""
+    i = np.arange(-pad, n + pad)
+    if n == 1:
+        return np.zeros_like(i)
+    period = 2 * (n - 1)
+    i = np.abs(i) % period
+    return np.where(i >= n, period - i, i)
+
+
+def _box_mean(x, size):
+    """Return cv2.blur(x, (size, size)) of a (H, W) tensor (borders reflected, 101)."""
+    pad = size // 2
+    rows, cols = (torch.from_numpy(_reflect_101(n, pad)).to(x.device) for n in x.shape)
+    padded = x.index_select(0, rows).index_select(1, cols)
+    return F.avg_pool2d(padded[None, None], size, stride=1)[0, 0]
+
+
+def _max_filter(x, size):
+    """Return cv2.dilate(x, ones((size, size))) of a (H, W) tensor (borders replicated)."""
+    padded = F.pad(x[None, None], (size // 2,) * 4, mode='replicate')
+    return F.max_pool2d(padded, size, stride=1)[0, 0]
+
+
+def features(disp, consistent, m, cof_c, cof_d, gcp):
+    """Return `postprocess.features` of device tensors, (len(FEATURES), H, W) float32."""
+    planes = torch.zeros((len(FEATURES), *disp.shape), dtype=torch.float32, device=disp.device)
+    (cnn, on_gcp, agrees, margin_, sqrt_margin, lr, lr_around, margin_around, spread, above,
+     log_disp, lr_wide, margin_wide) = planes
+    if cof_c is not None:
+        cnn.copy_(cof_c)
+        on_gcp.copy_(gcp)
+        agrees.copy_((cof_d.double() - disp.double()).abs() <= 1)  # numpy's float64
+    margin_.copy_(m)
+    lr.copy_(consistent)
+    torch.sqrt(m, out=sqrt_margin)
+    low, high = -_max_filter(-disp, AROUND), _max_filter(disp, AROUND)
+    for src, dst, size in ((lr, lr_around, AROUND), (m, margin_around, AROUND),
+                           (lr, lr_wide, WIDE), (m, margin_wide, WIDE)):
+        dst.copy_(_box_mean(src, size))
+    for value, dst in ((high - low, spread), (disp - low, above), (disp, log_disp)):
+        torch.log1p(value.clamp(min=0), out=dst)
+    return planes
+
+
+def calibrated(fit, planes):
+    """Return `fit(planes)` (a `postprocess.Confidence`) of device planes, float32."""
+    coef = torch.from_numpy(fit.coef.astype(np.float32)).to(planes.device)
+    score = (torch.tensordot(coef[1:], planes, 1) + coef[0]).double()
+    xp, fp = (torch.from_numpy(k).to(planes.device) for k in fit.knots)
+    j = torch.searchsorted(xp, score, right=True).clamp(1, len(xp) - 1) - 1
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    out = slope * (score - xp[j]) + fp[j]  # np.interp's formula
+    out = torch.where(score < xp[0], fp[0], torch.where(score >= xp[-1], fp[-1], out))
+    return out.float()
