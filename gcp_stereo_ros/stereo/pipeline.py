@@ -331,7 +331,7 @@ class StereoPipeline:
         One upload of the pair (and of `confidence` if given), the volumes stay in GPU
         memory, one download of the outputs. The device is synchronized at each stage's end,
         so that the stage times are the GPU's. The calibrated confidence is computed there
-        too (`postprocess_cuda`), but with `median`, which runs on the host before it.
+        too (`postprocess_cuda`), except with `median`, which runs on the host before it.
         """
         import torch
 
