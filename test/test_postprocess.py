@@ -7,6 +7,7 @@ float rounding and bf16 differences, and any real regression crosses them.
 import cv2
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
+from gcp_stereo_ros.stereo import postprocess_cuda
 from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 from gcp_stereo_ros.stereo.postprocess import (background_fits, backgrounds, Confidence,
@@ -15,6 +16,7 @@ from gcp_stereo_ros.stereo.postprocess import (background_fits, backgrounds, Con
 from gcp_stereo_ros.stereo.sgm import winners
 import numpy as np
 import pytest
+import torch
 
 
 @pytest.mark.parametrize('dtype', [np.uint16, np.float32])
@@ -278,8 +280,6 @@ def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
 
 def test_the_gpu_twins_of_the_confidence_equal_the_host(data_dir):
     """postprocess_cuda (torch, here on the CPU) against postprocess, on KITTI 000070."""
-    torch = pytest.importorskip('torch')
-    from gcp_stereo_ros.stereo import postprocess_cuda
     frame = load_frame(data_dir, 'kitti2012/000070_10')
     pipe = StereoPipeline(StereoConfig(bf16=False, **UNFILTERED))
     r = pipe(frame.left, frame.right)

@@ -2,8 +2,8 @@
 The confidence of the published disparity on a GPU: torch twins of `postprocess`'s.
 
 `margin`, `features` and `calibrated` (a `postprocess.Confidence` applied) compute on the
-device what the host computed after the download, which was half of a KITTI pair's time on
-an H200 (doc/speed.md). The results equal the host's within float rounding: cv2's box
+device what the host computed after the download: a third of a KITTI pair's time on an
+H200 (doc/speed.md). The results equal the host's within float rounding: cv2's box
 filter sums in float64, torch's in float32, so the window means differ in the last bits.
 """
 import numpy as np
