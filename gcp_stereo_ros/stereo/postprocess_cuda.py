@@ -4,7 +4,7 @@ The confidence of the published disparity on a GPU: torch twins of `postprocess`
 `margin`, `features` and `calibrated` (a `postprocess.Confidence` applied) compute on the
 device what the host computed after the download: a third of a KITTI pair's time on an
 H200 (doc/speed.md). The results equal the host's within float rounding: cv2's box
-filter sums in float64, torch's in float32, so the window means differ in the last bits.
+filter and torch's pooling sum in other orders, so the window means differ in the last bits.
 """
 import numpy as np
 import torch
