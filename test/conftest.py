@@ -93,3 +93,33 @@ def kitti_occ_only(tmp_path, data_dir):
         for stem in stems:
             (training / sub / f'{stem}.png').symlink_to(shared / sub / f'{stem}.png')
     return tmp_path
+
+
+@pytest.fixture(scope='module')
+def pair():
+    """Motorcycle at a third of its size: real texture, quick to match."""
+    import cv2
+    from skimage import data
+    left, right, _ = data.stereo_motorcycle()
+    return tuple(cv2.resize(im, (247, 167), interpolation=cv2.INTER_AREA) for im in (left, right))
+
+
+@pytest.fixture
+def harness(ros, request):
+    """Yield a `Harness`: the node (`max_disparity` 32, then the test's parameters), its peer."""
+    from ros_helpers import Harness, MAX_DISP
+    overrides = {'max_disparity': MAX_DISP, **getattr(request, 'param', {})}
+    h = Harness(overrides)
+    h.overrides = overrides
+    yield h
+    h.close()
+
+
+@pytest.fixture(scope='module')
+def params_file(tmp_path_factory):
+    """Return a parameters file of the bag tests' node parameters (`bag_helpers.PARAMS`)."""
+    import yaml
+    from bag_helpers import PARAMS
+    path = tmp_path_factory.mktemp('params') / 'gcp_stereo.yaml'
+    path.write_text(yaml.safe_dump({'gcp_stereo_node': {'ros__parameters': PARAMS}}))
+    return path

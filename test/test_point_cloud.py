@@ -1,7 +1,6 @@
 """point_cloud_node with real rclpy: stereo_image_proc's interface, the stereo node's geometry."""
 import array
 import threading
-import time
 
 import cv2
 from gcp_stereo_ros.ros import messages
@@ -18,6 +17,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
+from ros_helpers import wait_for
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from skimage import data
 from stereo_msgs.msg import DisparityImage
@@ -77,13 +77,6 @@ def graph():
     for node in [*nodes, peer]:
         node.destroy_node()
     rclpy.shutdown()
-
-
-def wait_for(condition, what, timeout=60.0):
-    end = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < end, f'timed out waiting for {what}'
-        time.sleep(0.01)
 
 
 def send_all(peer, nodes, msgs):
