@@ -3,9 +3,9 @@ import os
 from pathlib import Path
 import subprocess
 import sys
-import threading
 import time
 
+from gcp_stereo_ros.ros.graph import Spinner
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields
 from gcp_stereo_ros.tools.bag.files import IMAGE, stamped_header, STRING
 import numpy as np
@@ -72,7 +72,6 @@ class Listener:
     """A node recording (arrival time, message) per topic, spun in a thread."""
 
     def __init__(self, rclpy, name, topics):
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         self.node = rclpy.create_node(name)
         self.got = {topic: [] for topic in topics}
@@ -84,10 +83,7 @@ class Listener:
             self.node.create_subscription(
                 cls, topic, lambda m, t=topic: self.got[t].append((time.monotonic(), m)),
                 rosout if topic == '/rosout' else best_effort)
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.node)
 
     def wait(self, condition, what, timeout):
         end = time.monotonic() + timeout
@@ -99,6 +95,5 @@ class Listener:
         return {topic: len(msgs) for topic, msgs in self.got.items()}
 
     def close(self):
-        self.executor.shutdown()
-        self.thread.join()
+        self.spinner.stop()
         self.node.destroy_node()

@@ -4,9 +4,9 @@ What the ROS tests share: the node harness, waiting, stamps, camera_info of a re
 `conftest.py` makes the `harness` fixture of `Harness`.
 """
 import itertools
-import threading
 import time
 
+from gcp_stereo_ros.ros.graph import Spinner
 from gcp_stereo_ros.ros.node import GcpStereoNode
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields
@@ -14,7 +14,6 @@ from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 from rcl_interfaces.msg import Log
 from rcl_interfaces.srv import SetParameters
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
@@ -49,11 +48,7 @@ class Harness:
         self.peer.create_subscription(DisparityImage, 'disparity', self.disparity.append, 10)
         self.peer.create_subscription(Image, 'gcp_mask', self.gcp.append, 10)
         self.set_client = self.peer.create_client(SetParameters, '/gcp_stereo_node/set_parameters')
-        self.executor = MultiThreadedExecutor(num_threads=3)
-        self.executor.add_node(self.node)
-        self.executor.add_node(self.peer)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.node, self.peer)
         wait_for(lambda: all(self.matched(p) for p in self.pub.values()), 'subscribers')
         assert self.set_client.wait_for_service(timeout_sec=10)
 
@@ -141,9 +136,7 @@ class Harness:
         harness's node would then log through this one's /rosout publisher (rcl keeps one per
         logger name), and nothing once that one goes.
         """
-        self.executor.shutdown()
-        self.thread.join(10)
-        assert not self.thread.is_alive()
+        self.spinner.stop()
         self.node.destroy_node()
         self.peer.destroy_node()
 

@@ -1,15 +1,14 @@
 """The managed node: each lifecycle transition does what it says, with real rclpy."""
 import gc
-import threading
 import time
 import weakref
 
 import cv2
+from gcp_stereo_ros.ros.graph import Spinner
 from gcp_stereo_ros.ros.lifecycle_node import GcpStereoLifecycleNode
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields
 import pytest
 from rcl_interfaces.msg import Log
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -31,17 +30,11 @@ def graph(ros):
         node = GcpStereoLifecycleNode(
             parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
         peer = Node('lifecycle_peer')
-        executor = MultiThreadedExecutor(num_threads=3)
-        executor.add_node(node)
-        executor.add_node(peer)
-        thread = threading.Thread(target=executor.spin, daemon=True)
-        thread.start()
-        made.append((executor, thread, node, peer))
+        made.append((Spinner(node, peer), node, peer))
         return node, peer
     yield start
-    for executor, thread, node, peer in made:
-        executor.shutdown()
-        thread.join(10)
+    for spinner, node, peer in made:
+        spinner.stop()
         node.destroy_node()
         peer.destroy_node()
 
@@ -113,10 +106,7 @@ def test_a_destroyed_node_is_gone_and_leaves_the_logs_of_its_name(ros):
     peer.create_subscription(Log, '/rosout', logs.append, QoSProfile(
         depth=1000, reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL))
-    executor = MultiThreadedExecutor(num_threads=2)
-    executor.add_node(peer)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
+    spinner = Spinner(peer)
     try:
         del old
         gc.collect()  # what the garbage collector does at some point
@@ -124,7 +114,6 @@ def test_a_destroyed_node_is_gone_and_leaves_the_logs_of_its_name(ros):
         wait_for(lambda: any(m.msg == 'still heard' and m.name == 'gcp_stereo_node'
                              for m in logs), 'the new node on /rosout', 10)
     finally:
-        executor.shutdown()
-        thread.join(10)
+        spinner.stop()
         new.destroy_node()
         peer.destroy_node()

@@ -7,7 +7,7 @@ import threading
 import time
 
 from gcp_stereo_ros.evaluation.datasets import load_frame
-from gcp_stereo_ros.ros.graph import executable, start_node, stop
+from gcp_stereo_ros.ros.graph import executable, Spinner, start_node, stop
 from gcp_stereo_ros.ros.node import GcpStereoNode
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields
 from gcp_stereo_ros.ros.worker import NewestWorker
@@ -15,7 +15,6 @@ from gcp_stereo_ros.tools.load import cpu_seconds
 import numpy as np
 import pytest
 import rclpy
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from ros_helpers import rectified_infos, stamp_of, wait_for
@@ -200,9 +199,7 @@ def test_node_process_stops_within_2_s_mid_frame(ros, data_dir, signals, gap):
     peer.create_subscription(DisparityImage, 'disparity', disparity.append, 10)
     pubs = {s: peer.create_publisher(Image, f'{s}/image_rect', qos_profile_sensor_data)
             for s in ('left', 'right')}
-    executor = MultiThreadedExecutor(num_threads=2)
-    executor.add_node(peer)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    spinner = Spinner(peer)
 
     def send(side, image, stamp_ns):
         fields = array_to_image_fields(image, 'rgb8')
@@ -234,7 +231,7 @@ def test_node_process_stops_within_2_s_mid_frame(ros, data_dir, signals, gap):
         seconds = time.monotonic() - start
     finally:
         stop(node)
-        executor.shutdown()
+        spinner.stop()
         peer.destroy_node()
     assert code == 0 and seconds < 2.0, (code, seconds)
     assert big not in map(stamp_of, disparity)  # nothing of the stopped frame

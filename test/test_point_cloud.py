@@ -1,10 +1,10 @@
 """point_cloud_node with real rclpy: stereo_image_proc's interface, the stereo node's geometry."""
 import array
-import threading
 
 import cv2
 from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.ros.camera import stereo_model
+from gcp_stereo_ros.ros.graph import Spinner
 from gcp_stereo_ros.ros.node import ros_data, RosTypes
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.point_cloud_node import PointCloudNode
@@ -13,7 +13,6 @@ from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest
 import rclpy
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
@@ -67,13 +66,9 @@ def graph():
         nodes.append(node)
         return node
     peer = Node('point_cloud_peer')
-    executor = MultiThreadedExecutor(num_threads=2)
-    executor.add_node(peer)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    yield start, executor, peer
-    executor.shutdown()
-    thread.join(10)
+    spinner = Spinner(peer)
+    yield start, spinner.executor, peer
+    spinner.stop()
     for node in [*nodes, peer]:
         node.destroy_node()
     rclpy.shutdown()

@@ -14,11 +14,11 @@ import re
 import shutil
 import subprocess
 import sys
-import threading
 import time
 from types import ModuleType, SimpleNamespace
 
 from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.ros.graph import Spinner
 from gcp_stereo_ros.ros.node import GcpStereoNode
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import image_to_array
@@ -30,7 +30,6 @@ import pytest
 from rcl_interfaces.msg import ParameterType
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import get_parameter_value, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 import yaml
@@ -49,10 +48,7 @@ class Graph:
         self.node = GcpStereoNode(context=self.context)
         self.client_node = rclpy.create_node('ros2cli_stand_in', context=self.context,
                                              use_global_arguments=False)  # not renamed
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.executor.add_node(self.client_node)
-        threading.Thread(target=self.executor.spin, daemon=True).start()
+        self.spinner = Spinner(self.node, self.client_node, context=self.context)
         self.name = self.node.get_fully_qualified_name()
         self.client = AsyncParameterClient(self.client_node, self.name)
         assert self.client.wait_for_services(timeout_sec=10)
@@ -97,7 +93,7 @@ class Graph:
         return result
 
     def close(self):
-        self.executor.shutdown()
+        self.spinner.stop()
         self.node.destroy_node()
         self.client_node.destroy_node()
         rclpy.shutdown(context=self.context)

@@ -2,7 +2,8 @@
 Starting and stopping the node in a private ROS graph, for the demo and the load run.
 
 Also the Fast DDS shared-memory segment size, which bounds the messages the graph carries.
-rclpy is imported only inside `peer_graph`, after the environment it reads is set.
+rclpy is imported only inside `Spinner` and `peer_graph`, after the environment it reads
+is set.
 """
 from contextlib import contextmanager
 import os
@@ -108,6 +109,38 @@ def start_node(env, params=None, params_file=None):
     return subprocess.Popen(cmd, env=env)
 
 
+class Spinner:
+    """
+    Nodes spun in a thread of their own, one callback at a time, as `rclpy.spin` spins one.
+
+    `stop` ends the loop after the callback in progress, joins the thread, then shuts the
+    executor down. Shutting it down first races with that callback in Jazzy:
+    `Executor.shutdown` destroys the executor's guard condition without waiting for the
+    callbacks in progress, which then fail on it ("cannot use Destroyable because destruction
+    was requested"; a SingleThreadedExecutor raises that in its thread, a
+    MultiThreadedExecutor's pool leaves it unretrieved and rclpy prints it at exit).
+    """
+
+    def __init__(self, *nodes, context=None):
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.task import Future
+        self.executor = SingleThreadedExecutor(context=context)
+        for node in nodes:
+            self.executor.add_node(node)
+        self._stopped = Future()
+        self._thread = threading.Thread(target=self.executor.spin_until_future_complete,
+                                        args=(self._stopped,), daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout=10.0):
+        """Stop spinning, wait up to `timeout` s for the thread, then shut the executor down."""
+        self._stopped.set_result(True)
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            raise RuntimeError(f'a callback still runs after {timeout} s')
+        self.executor.shutdown()
+
+
 @contextmanager
 def peer_graph(peer_name, params=None, params_file=None):
     """
@@ -120,19 +153,16 @@ def peer_graph(peer_name, params=None, params_file=None):
     """
     join_private_graph()
     import rclpy  # after the environment is set: rclpy reads it at init
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
     node = start_node(os.environ, params, params_file)
     rclpy.init(args=[])  # our argv is not for rcl
     peer = Node(peer_name)
-    executor = SingleThreadedExecutor()
-    executor.add_node(peer)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    spinner = Spinner(peer)
     try:
         yield peer, node
     finally:
-        executor.shutdown()
+        spinner.stop()
         peer.destroy_node()
         rclpy.try_shutdown()
         stop(node)
