@@ -1,5 +1,9 @@
 """The private ROS graph of the demo and load tools, and the Fast DDS segment size."""
-from gcp_stereo_ros.ros.graph import package_file, private_env, shm_segment_bytes
+import threading
+import time
+
+from gcp_stereo_ros.ros.graph import package_file, private_env, shm_segment_bytes, Spinner
+from ros_helpers import wait_for
 
 
 def test_private_graph_keeps_the_users_domain(monkeypatch):
@@ -25,3 +29,31 @@ def test_shm_segment_size_is_read_from_the_profile(tmp_path):
     broken = tmp_path / 'broken.xml'
     broken.write_text('<profiles><transport_descriptors>')
     assert shm_segment_bytes({'FASTRTPS_DEFAULT_PROFILES_FILE': str(broken)}) == 512 << 10
+
+
+def test_spinner_stops_after_the_callback_in_progress(ros):
+    """Stopped mid-callback, it returns once the callback is done, and nothing is raised."""
+    from rclpy.node import Node
+    from std_msgs.msg import String
+    node, peer = Node('spinner_test'), Node('spinner_test_peer')
+    started, done, errors = threading.Event(), [], []
+
+    def slow(msg):
+        started.set()
+        time.sleep(0.3)
+        done.append(msg.data)
+    sub = node.create_subscription(String, 'spinner_test', slow, 10)
+    pub = peer.create_publisher(String, 'spinner_test', 10)
+    hook, threading.excepthook = threading.excepthook, errors.append
+    spinner = Spinner(node)
+    try:
+        wait_for(lambda: pub.get_subscription_count() and sub.get_publisher_count(), 'matched')
+        pub.publish(String(data='in progress'))
+        assert started.wait(10)
+        spinner.stop()
+        assert done == ['in progress']  # finished before stop returned
+    finally:
+        threading.excepthook = hook
+        node.destroy_node()
+        peer.destroy_node()
+    assert not errors, errors[0].exc_value

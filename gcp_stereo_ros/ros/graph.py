@@ -113,12 +113,12 @@ class Spinner:
     """
     Nodes spun in a thread of their own, one callback at a time, as `rclpy.spin` spins one.
 
-    `stop` ends the loop after the callback in progress, joins the thread, then shuts the
-    executor down. Shutting it down first races with that callback in Jazzy:
-    `Executor.shutdown` destroys the executor's guard condition without waiting for the
-    callbacks in progress, which then fail on it ("cannot use Destroyable because destruction
-    was requested"; a SingleThreadedExecutor raises that in its thread, a
-    MultiThreadedExecutor's pool leaves it unretrieved and rclpy prints it at exit).
+    `stop` ends the loop after the callback in progress and joins the thread, so that the
+    nodes can be destroyed, then shuts the executor down. Jazzy's `Executor.shutdown` waits
+    for nothing: it destroys the executor's guard condition at once, and a
+    MultiThreadedExecutor's callbacks still queued in its pool then fail on it ("cannot use
+    Destroyable because destruction was requested", which rclpy prints at exit as an
+    exception never retrieved: twice in a CI run of the tests, which spun their nodes so).
     """
 
     def __init__(self, *nodes, context=None):
