@@ -162,10 +162,12 @@ def peer_graph(peer_name, params=None, params_file=None):
     try:
         yield peer, node
     finally:
-        spinner.stop()
-        peer.destroy_node()
-        rclpy.try_shutdown()
-        stop(node)
+        try:
+            spinner.stop()
+        finally:  # the node stops even if a callback of the peer hangs
+            peer.destroy_node()
+            rclpy.try_shutdown()
+            stop(node)
 
 
 def stop(proc, timeout=10.0):
