@@ -1,11 +1,12 @@
 """
-What the ROS tests share: the node harness, waiting, stamps, camera_info of a rectified pair.
+What the ROS tests share: the node harness, waiting, camera_info of a rectified pair.
 
 `conftest.py` makes the `harness` fixture of `Harness`.
 """
 import itertools
 import time
 
+from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.ros.graph import Spinner
 from gcp_stereo_ros.ros.node import GcpStereoNode
 from gcp_stereo_ros.ros.params import config_from_params
@@ -74,6 +75,10 @@ class Harness:
         msg.header.frame_id = frame_id
         self.pub[side].publish(msg)
 
+    def newest_stamp(self):
+        """Return the stamp (ns) of the newest disparity received, None before the first."""
+        return messages.stamp_ns(self.disparity[-1].header) if self.disparity else None
+
     def listen(self, topic, cls, qos=10):
         """Return the list the messages of `topic` go to, once the node's publisher has us."""
         got = []
@@ -95,7 +100,8 @@ class Harness:
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
         self.publish(f'{side}/camera_info', msg)
         wait_for(lambda: self.node.input.info[side] is not None
-                 and stamp_of(self.node.input.info[side]) == stamp_ns, f'{side} camera_info')
+                 and messages.stamp_ns(self.node.input.info[side].header) == stamp_ns,
+                 f'{side} camera_info')
 
     def send_taken(self, side, array, encoding, stamp_ns):
         """Send, then wait until the node took it (its image subscriptions keep depth 1)."""
@@ -146,10 +152,6 @@ def wait_for(condition, what, timeout=60.0):
     while not condition():
         assert time.monotonic() < end, f'timed out waiting for {what}'
         time.sleep(0.01)
-
-
-def stamp_of(msg):
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
 def expected(overrides, left, right):

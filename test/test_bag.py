@@ -12,6 +12,7 @@ import cv2
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
 from gcp_stereo_ros.evaluation.viz import disparity_picture
+from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.ros.camera import stereo_model
 from gcp_stereo_ros.ros.graph import start_node, stop
 from gcp_stereo_ros.ros.params import config_from_params
@@ -22,7 +23,6 @@ from gcp_stereo_ros.tools.bag import make as bag_make, run as bag_run
 from gcp_stereo_ros.tools.bag.files import COMPRESSED, stamped_header
 import numpy as np
 import pytest
-from ros_helpers import stamp_of
 
 
 @pytest.fixture(scope='module')
@@ -53,14 +53,14 @@ def test_make_writes_the_node_inputs_and_ground_truth(tmp_path, data_dir):
         qos, = conns[topic].ext.offered_qos_profiles
         assert (qos.reliability.name, qos.durability.name, qos.history.name, qos.depth) == \
             ('BEST_EFFORT', 'VOLATILE', 'KEEP_LAST', 5)
-    stamps = [stamp_of(m) for _, m in msgs['/stereo/left/image_rect']]
+    stamps = [messages.stamp_ns(m.header) for _, m in msgs['/stereo/left/image_rect']]
     assert np.diff(stamps).tolist() == [50_000_000]
     assert [m.data for _, m in msgs['/stereo/gt/frame_name']] == names
     for i, name in enumerate(names):
         frame = load_frame(data_dir, name)
         for side in ('left', 'right'):
             timestamp, image = msgs[f'/stereo/{side}/image_rect'][i]
-            assert timestamp == stamp_of(image) == stamps[i]
+            assert timestamp == messages.stamp_ns(image.header) == stamps[i]
             assert image.header.frame_id == f'{side}_camera'
             assert image.encoding == ('rgb8' if frame.left.ndim == 3 else 'mono8')
             np.testing.assert_array_equal(image_to_array(image), getattr(frame, side))
@@ -146,7 +146,7 @@ def test_run_gives_the_node_outputs_and_scores(data_dir, round_trip, expected,
         disp_msg, gcp_msg, conf_msg = (
             outputs[t][i][1] for t in ('/disparity', '/gcp_mask', '/confidence'))
         for msg in (disp_msg, gcp_msg, conf_msg):
-            assert stamp_of(msg) == stamp_of(left)
+            assert messages.stamp_ns(msg.header) == messages.stamp_ns(left.header)
             assert msg.header.frame_id == left.header.frame_id == 'left_camera'
         low = np.float32(frame.doffs_px)  # d = 0 in the message: d - (cx_left - cx_right)
         want = np.where(np.isnan(result.disparity), low - 1, result.disparity + low)
@@ -196,7 +196,8 @@ def test_play_into_the_node_gives_what_run_gives(data_dir, params_file, round_tr
     scalars = ('f', 't', 'min_disparity', 'max_disparity', 'delta_d')
     roi = ('x_offset', 'y_offset', 'width', 'height')
     for (_, live), (_, off) in zip(listener.got['/disparity'], offline['/disparity'], strict=True):
-        assert stamp_of(live) == stamp_of(off) and live.header.frame_id == off.header.frame_id
+        assert messages.stamp_ns(live.header) == messages.stamp_ns(off.header)
+        assert live.header.frame_id == off.header.frame_id
         np.testing.assert_array_equal(image_to_array(live.image), image_to_array(off.image))
         assert [getattr(live, k) for k in scalars] == [getattr(off, k) for k in scalars]
         assert ([getattr(live.valid_window, k) for k in roi]

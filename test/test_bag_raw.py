@@ -2,6 +2,7 @@
 
 from bag_helpers import cli, crop_msg, PARAMS, read_bag, write_bag
 from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields, image_to_array
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
@@ -9,7 +10,6 @@ from gcp_stereo_ros.tools import bag
 from gcp_stereo_ros.tools.bag.files import IMAGE, INFO, stamped_header, TYPES
 import numpy as np
 import pytest
-from ros_helpers import stamp_of
 import yaml
 
 
@@ -49,14 +49,15 @@ def test_run_pairs_free_running_cameras_by_the_closest_stamps(tmp_path, capsys):
                      '--params', str(params)]) == 0
     outputs, _ = read_bag(tmp_path / 'out')
     # the first frame goes: the frame period is known from a side's second image on
-    assert [stamp_of(m) for _, m in outputs['/disparity']] == stamps['left'][1:]
+    assert [messages.stamp_ns(m.header) for _, m in outputs['/disparity']] == stamps['left'][1:]
     assert 'images without a twin skipped: left 1, right 2' in capsys.readouterr().out
     one = tmp_path / 'one'  # a recording of one frame: the closest stamps
     write_bag(one, {f'/{side}/image_rect': (IMAGE, [(stamps[side][0], crop_msg(
         frame, side, stamps[side][0]))]) for side in stamps})
     assert bag.main(['run', '--in', str(one), '--out', str(tmp_path / 'one_out'),
                      '--params', str(params)]) == 0
-    assert [stamp_of(m) for _, m in read_bag(tmp_path / 'one_out')[0]['/disparity']] == [0]
+    one = read_bag(tmp_path / 'one_out')[0]['/disparity']
+    assert [messages.stamp_ns(m.header) for _, m in one] == [0]
 
 
 def test_run_rectifies_a_raw_recording(tmp_path, distorted_pair):
@@ -157,5 +158,5 @@ def test_run_pairs_each_image_with_the_camera_info_of_its_stamp(tmp_path, distor
     assert proc.returncode == 0, proc.stderr
     assert 'camera_info' not in proc.stderr, proc.stderr
     msgs, _ = read_bag(tmp_path / 'out')
-    got = [(stamp_of(m), m.t) for _, m in msgs['/cam/disparity']]
+    got = [(messages.stamp_ns(m.header), m.t) for _, m in msgs['/cam/disparity']]
     assert got == [(1, pytest.approx(0.2)), (2, pytest.approx(0.3))]

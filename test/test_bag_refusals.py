@@ -9,11 +9,11 @@ import time
 from bag_helpers import (cli, crop_msg, image_msg, PARAMS, read_bag, REPO, string_msg, TYPESTORE,
                          write_bag)
 from gcp_stereo_ros.evaluation.datasets import load_frame
+from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.tools import bag
 from gcp_stereo_ros.tools.bag import make as bag_make
 from gcp_stereo_ros.tools.bag.files import IMAGE, PROG, STRING
 import pytest
-from ros_helpers import stamp_of
 from rosbags.rosbag2 import StoragePlugin, Writer
 import yaml
 
@@ -93,7 +93,7 @@ def test_run_skips_a_bad_pair_as_the_node_does(tmp_path, params_file, capsys):
         'image is 160x100 (width x height); a rectified pair has one size']
     assert ' processed (confidence, disparity, gcp_mask written), 2 skipped;' in out.out
     outputs, _ = read_bag(tmp_path / 'out')
-    assert [stamp_of(m) for _, m in outputs['/disparity']] == [1, 4]
+    assert [messages.stamp_ns(m.header) for _, m in outputs['/disparity']] == [1, 4]
     too_high = tmp_path / 'theta.yaml'  # the shipped weights' confidence is at most 0.961
     too_high.write_text(yaml.safe_dump(
         {'/**': {'ros__parameters': {**PARAMS, 'census.theta': 0.97}}}))

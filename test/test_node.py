@@ -7,11 +7,12 @@ import math
 import time
 
 import cv2
+from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.ros.rosimage import image_to_array
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from ros_helpers import expected, MAX_DISP, stamp_of, wait_for
+from ros_helpers import expected, MAX_DISP, wait_for
 
 
 def test_pair_gives_pipeline_output(harness, pair):
@@ -20,7 +21,7 @@ def test_pair_gives_pipeline_output(harness, pair):
     wait_for(lambda: harness.disparity and harness.gcp, 'disparity and gcp_mask')
     disp_msg, gcp_msg = harness.disparity[0], harness.gcp[0]
     want, result = expected(harness.overrides, left, right)
-    assert stamp_of(disp_msg) == stamp_of(gcp_msg) == 5_000_000_123
+    assert messages.stamp_ns(disp_msg.header) == messages.stamp_ns(gcp_msg.header) == 5_000_000_123
     assert disp_msg.header.frame_id == 'left_camera'
     np.testing.assert_array_equal(image_to_array(disp_msg.image), want)
     np.testing.assert_array_equal(image_to_array(gcp_msg), result.gcp.astype(np.uint8) * 255)
@@ -44,7 +45,7 @@ def test_every_encoding(harness, pair):
     for encoding, (l_img, r_img) in inputs.items():
         stamp += 1_000_000
         harness.send_pair(l_img, r_img, encoding, stamp)
-        wait_for(lambda: harness.disparity and stamp_of(harness.disparity[-1]) == stamp, encoding)
+        wait_for(lambda: harness.newest_stamp() == stamp, encoding)
     for alpha_encoding in ('rgba8', 'bgra8'):  # 4-channel: built by hand, alpha must be ignored
         stamp += 1_000_000
         for side, img in (('left', left), ('right', right)):
@@ -53,8 +54,7 @@ def test_every_encoding(harness, pair):
             harness.send(side, None, None, stamp, {
                 'height': img.shape[0], 'width': img.shape[1], 'encoding': alpha_encoding,
                 'step': img.shape[1] * 4, 'is_bigendian': 0, 'data': rgba.tobytes()})
-        wait_for(lambda: harness.disparity and stamp_of(harness.disparity[-1]) == stamp,
-                 alpha_encoding)
+        wait_for(lambda: harness.newest_stamp() == stamp, alpha_encoding)
     got = [image_to_array(m.image) for m in harness.disparity]
     want_color, _ = expected(harness.overrides, left, right)
     want_gray, _ = expected(harness.overrides, *gray)
@@ -70,7 +70,7 @@ def test_exact_and_approximate_sync(harness, pair):
 
     def outputs(n):  # the newest pair wins, so wait for each expected output before going on
         wait_for(lambda: len(harness.disparity) >= n, f'{n} disparity messages')
-        return [stamp_of(m) for m in harness.disparity]
+        return [messages.stamp_ns(m.header) for m in harness.disparity]
 
     # no exact twin; each image taken before the next of its side is sent (send_pair would
     # not wait, and a newer left image replaces one not yet taken: depth 1)
@@ -144,7 +144,7 @@ def test_set_parameters_live(harness, pair):
         'theta': 0.2, 'P1': 0.02, 'P2': 20.0, 'c_hi': 5.0, 'c_low': 0.001,
         'gcp_plain_check': False, 'plain_check': 0.0}
     harness.send_pair(left, right, 'rgb8', 8_000_000_000)
-    wait_for(lambda: stamp_of(harness.disparity[-1]) == 8_000_000_000,
+    wait_for(lambda: harness.newest_stamp() == 8_000_000_000,
              'disparity after cost switch')
     want, _ = expected({**overrides, 'cost': 'sad', 'sad.P2': 20.0}, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)

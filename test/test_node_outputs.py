@@ -14,7 +14,7 @@ from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest
 from rclpy.qos import ReliabilityPolicy
-from ros_helpers import (BASELINE, CX_OFFSET, expected, F, MAX_DISP, rectified_infos, stamp_of,
+from ros_helpers import (BASELINE, CX_OFFSET, expected, F, MAX_DISP, rectified_infos,
                          wait_for)
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
@@ -90,7 +90,8 @@ def test_depth_and_points2_equal_opencv_reprojection(harness, pair, monkeypatch)
                                        (6, {'avoid_point_cloud_padding': False}, 16, 'xyz')):
         assert all(r.successful for r in harness.set_params(change))
         harness.send_pair(left, right, 'rgb8', stamp * 1_000_000_000)
-        wait_for(lambda: points and stamp_of(points[-1]) == stamp * 1_000_000_000, 'points2')
+        wait_for(lambda: points and messages.stamp_ns(points[-1].header) == stamp * 1_000_000_000,
+                 'points2')
         assert points[-1].point_step == step
         assert ''.join(f.name[0] for f in points[-1].fields) == names
         assert [f.offset for f in points[-1].fields] == [0, 4, 8, 12][:len(names)]
@@ -129,7 +130,7 @@ def test_no_calibration_gives_one_warning_and_no_depth(harness, pair):
         harness.send_info(side, fields, 2_000_000_000)
     for stamp in (3_000_000_000, 4_000_000_000):
         harness.send_pair(left, right, 'rgb8', stamp)
-        wait_for(lambda: stamp_of(harness.disparity[-1]) == stamp, 'disparity')
+        wait_for(lambda: harness.newest_stamp() == stamp, 'disparity')
     warnings = harness.error_logs('WARN')
     assert sum('no depth or points2: no left camera_info received' in m for m in warnings) == 1
     assert sum('camera_info ignored (no f, t, depth or points2): baseline T' in m
@@ -196,7 +197,7 @@ def test_diagnostics_say_what_is_wrong(harness, pair):
     # as the warning says: approximate_sync, its tolerance 0 (the closest stamps)
     assert all(r.successful for r in harness.set_params({'approximate_sync': True}))
     first = stamp
-    while not (harness.disparity and stamp_of(harness.disparity[-1]) >= first):
+    while not (harness.disparity and harness.newest_stamp() >= first):
         assert stamp < first + 10_000_000_000, 'no pair of the closest stamps'
         harness.send_pair(left, right, 'rgb8', stamp, right_stamp_ns=stamp + 30_000_000)
         stamp += 200_000_000
@@ -216,7 +217,7 @@ def test_compressed_input(harness, pair):
             msg = CompressedImage(format=fields['format'], data=fields['data'].tobytes())
             msg.header.stamp.sec = stamp // 1_000_000_000
             harness.publish(f'{side}/image_rect/compressed', msg)
-        wait_for(lambda: harness.disparity and stamp_of(harness.disparity[-1]) == stamp, fmt)
+        wait_for(lambda: harness.newest_stamp() == stamp, fmt)
     png, jpeg = (image_to_array(m.image) for m in harness.disparity)
     np.testing.assert_array_equal(png, want)  # lossless: exactly the raw images' disparity
     assert 0 < (np.abs(jpeg - want) > 1).mean() < 0.15  # lossy, and still the same scene
@@ -252,7 +253,7 @@ def test_a_looped_one_frame_bag_gives_output_on_every_pass(harness, pair):
     for n in range(1, 4):  # what `play --loop` sends: the same stamps again and again
         harness.send_pair(*pair, 'rgb8', 5_000_000_000)
         wait_for(lambda: len(harness.disparity) == n, f'output of pass {n}')
-    assert {stamp_of(m) for m in harness.disparity} == {5_000_000_000}
+    assert {messages.stamp_ns(m.header) for m in harness.disparity} == {5_000_000_000}
 
 
 @pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
@@ -274,7 +275,7 @@ def test_a_busy_node_takes_no_images_then_the_newest(harness, pair, monkeypatch)
     assert harness.node.input.received == taken
     release.set()
     wait_for(lambda: len(harness.disparity) == 2, 'the newest pair')
-    assert stamp_of(harness.disparity[-1]) == newest
+    assert harness.newest_stamp() == newest
     assert {s: harness.node.input.received[s] - taken[s] for s in taken} == {'left': 1, 'right': 1}
 
 
