@@ -9,6 +9,7 @@ from gcp_stereo_ros.ros.graph import Spinner
 from gcp_stereo_ros.ros.rosimage import array_to_image_fields
 from gcp_stereo_ros.tools.bag.files import IMAGE, stamped_header, STRING
 import numpy as np
+from ros_helpers import wait_for
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 
@@ -86,10 +87,7 @@ class Listener:
         self.spinner = Spinner(self.node)
 
     def wait(self, condition, what, timeout):
-        end = time.monotonic() + timeout
-        while not condition():
-            assert time.monotonic() < end, f'timed out waiting for {what}: got {self.counts()}'
-            time.sleep(0.02)
+        wait_for(condition, lambda: f'{what}: got {self.counts()}', timeout)
 
     def counts(self):
         return {topic: len(msgs) for topic, msgs in self.got.items()}

@@ -67,12 +67,9 @@ class Harness:
 
     def send(self, side, array, encoding, stamp_ns, changes=None, frame_id='left_camera'):
         """Publish `array` as `encoding`, with Image fields then overwritten by `changes`."""
-        fields = array_to_image_fields(array, encoding) if array is not None else {}
-        msg = Image(**{**fields, 'data': bytes(fields.get('data', b''))})
+        msg = image_msg(array, encoding, stamp_ns, frame_id)
         for key, value in (changes or {}).items():
             setattr(msg, key, value)
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-        msg.header.frame_id = frame_id
         self.pub[side].publish(msg)
 
     def newest_stamp(self):
@@ -96,9 +93,7 @@ class Harness:
         self.pubs[topic].publish(msg)
 
     def send_info(self, side, fields, stamp_ns):
-        msg = CameraInfo(**fields)
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-        self.publish(f'{side}/camera_info', msg)
+        self.publish(f'{side}/camera_info', stamped(CameraInfo(**fields), stamp_ns))
         wait_for(lambda: self.node.input.info[side] is not None
                  and messages.stamp_ns(self.node.input.info[side].header) == stamp_ns,
                  f'{side} camera_info')
@@ -148,10 +143,26 @@ class Harness:
 
 
 def wait_for(condition, what, timeout=60.0):
+    """Wait until condition(); past `timeout` fail, saying `what` (or what() if callable)."""
     end = time.monotonic() + timeout
     while not condition():
-        assert time.monotonic() < end, f'timed out waiting for {what}'
+        if time.monotonic() >= end:
+            raise AssertionError(f'timed out waiting for {what() if callable(what) else what}')
         time.sleep(0.01)
+
+
+def stamped(msg, stamp_ns, frame_id=''):
+    """Return `msg` with its header's stamp `stamp_ns` (ns) and `frame_id`."""
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+    msg.header.frame_id = frame_id
+    return msg
+
+
+def image_msg(array, encoding, stamp_ns, frame_id=''):
+    """Return `array` as a stamped sensor_msgs/Image of `encoding` (None: no pixels)."""
+    fields = array_to_image_fields(array, encoding) if array is not None else {}
+    return stamped(Image(**{**fields, 'data': bytes(fields.get('data', b''))}), stamp_ns,
+                   frame_id)
 
 
 def expected(overrides, left, right):

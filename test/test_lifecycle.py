@@ -6,14 +6,13 @@ import weakref
 import cv2
 from gcp_stereo_ros.ros.graph import Spinner
 from gcp_stereo_ros.ros.lifecycle_node import GcpStereoLifecycleNode
-from gcp_stereo_ros.ros.rosimage import array_to_image_fields
 import pytest
 from rcl_interfaces.msg import Log
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
-from ros_helpers import wait_for
+from ros_helpers import image_msg, wait_for
 from sensor_msgs.msg import Image
 from skimage import data
 from stereo_msgs.msg import DisparityImage
@@ -39,13 +38,6 @@ def graph(ros):
         peer.destroy_node()
 
 
-def image(array, stamp_ns):
-    fields = array_to_image_fields(array, 'rgb8')
-    msg = Image(**{**fields, 'data': fields['data'].tobytes()})
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-    return msg
-
-
 def test_transitions(graph):
     left, right, _ = data.stereo_motorcycle()
     pair = [cv2.resize(im, (247, 167), interpolation=cv2.INTER_AREA) for im in (left, right)]
@@ -64,7 +56,7 @@ def test_transitions(graph):
                  and all(s.get_publisher_count() for s in node.input.subs.values()), 'matched')
         stamp = (cycle + 1) * 1_000_000_000
         for side, array in zip(pubs, pair):
-            pubs[side].publish(image(array, stamp))
+            pubs[side].publish(image_msg(array, 'rgb8', stamp))
         wait_for(lambda: disparity and disparity[-1].header.stamp.sec == cycle + 1, 'disparity')
         assert node.trigger_deactivate() == SUCCESS
         assert node.stopped  # the worker thread has ended

@@ -10,7 +10,6 @@ from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.ros.graph import executable, Spinner, start_node, stop
 from gcp_stereo_ros.ros.node import GcpStereoNode
-from gcp_stereo_ros.ros.rosimage import array_to_image_fields
 from gcp_stereo_ros.ros.worker import NewestWorker
 from gcp_stereo_ros.tools.load import cpu_seconds
 import numpy as np
@@ -18,7 +17,7 @@ import pytest
 import rclpy
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
-from ros_helpers import rectified_infos, wait_for
+from ros_helpers import image_msg, rectified_infos, wait_for
 from sensor_msgs.msg import Image
 from stereo_msgs.msg import DisparityImage
 
@@ -203,10 +202,7 @@ def test_node_process_stops_within_2_s_mid_frame(ros, data_dir, signals, gap):
     spinner = Spinner(peer)
 
     def send(side, image, stamp_ns):
-        fields = array_to_image_fields(image, 'rgb8')
-        msg = Image(**{**fields, 'data': fields['data'].tobytes()})
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-        pubs[side].publish(msg)
+        pubs[side].publish(image_msg(image, 'rgb8', stamp_ns))
     try:
         wait_for(lambda: all(p.get_subscription_count() for p in pubs.values()), 'the node')
         crop = (slice(0, 200), slice(0, 300))
