@@ -8,7 +8,6 @@ from gcp_stereo_ros.ros.graph import Spinner
 from gcp_stereo_ros.ros.node import ros_data, RosTypes
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.point_cloud_node import PointCloudNode
-from gcp_stereo_ros.ros.rosimage import array_to_image_fields
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest
@@ -16,12 +15,13 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
-from ros_helpers import wait_for
+from ros_helpers import BASELINE, CX_OFFSET, F, image_msg, stamped, wait_for
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from skimage import data
 from stereo_msgs.msg import DisparityImage
 
-F, BASELINE, CX_OFFSET = 210.0, 0.12, 2.5
+FRAME = 'left_camera'
+FIRST, SECOND = 1_000_000_000, 2_000_000_000  # the stamps (ns) of the two tests' messages
 
 
 def infos(shape, p_zero=False):
@@ -31,12 +31,6 @@ def infos(shape, p_zero=False):
         p = [0.0] * 12 if p_zero else [F, 0.0, cx, tx, 0.0, F, h / 2, 0.0, 0.0, 0.0, 1.0, 0.0]
         out[side] = CameraInfo(width=w, height=h, p=p)
     return out
-
-
-def stamped(msg, sec):
-    msg.header.stamp.sec = sec
-    msg.header.frame_id = 'left_camera'
-    return msg
 
 
 @pytest.fixture(scope='module')
@@ -49,7 +43,7 @@ def frame():
     result = StereoPipeline(config)(left, right)
     info = infos(left.shape)
     model = stereo_model(info['left'], info['right'], left.shape, config.max_disp)
-    disparity = messages.disparity_message(RosTypes, stamped(Image(), 1).header,
+    disparity = messages.disparity_message(RosTypes, stamped(Image(), FIRST, FRAME).header,
                                            result.disparity, config, model, ros_data)
     return left, result, model, info, disparity
 
@@ -104,11 +98,10 @@ def test_points_and_depth_equal_the_stereo_nodes(graph, frame):
     node = start(avoid_point_cloud_padding=True)
     executor.add_node(node)
     points, depth = listen(peer, node, 'points2', PointCloud2), listen(peer, node, 'depth', Image)
-    fields = array_to_image_fields(left, 'bgr8')
-    color = stamped(Image(**{**fields, 'data': fields['data'].tobytes()}), 1)
-    send_all(peer, [node], {'left/image_rect_color': color, 'disparity': disparity,
-                            'left/camera_info': stamped(info['left'], 1),
-                            'right/camera_info': stamped(info['right'], 1)})
+    send_all(peer, [node], {'left/image_rect_color': image_msg(left, 'bgr8', FIRST, FRAME),
+                            'disparity': disparity,
+                            'left/camera_info': stamped(info['left'], FIRST, FRAME),
+                            'right/camera_info': stamped(info['right'], FIRST, FRAME)})
     wait_for(lambda: points and depth, 'points2 and depth')
     want = messages.output_messages(RosTypes, disparity.header, {'points2', 'depth'}, result,
                                     config_from_params({'max_disparity': 32}), model, left,
@@ -134,16 +127,15 @@ def test_uncalibrated_float64_input_gives_nan_points(graph, frame):
         executor.add_node(node)
     clouds = [listen(peer, n, t, PointCloud2) for n, t in ((rgb, 'points2'), (xyz, 'xyz/points2'))]
     h, w = result.disparity.shape
-    disparity = stamped(DisparityImage(), 2)
+    disparity = stamped(DisparityImage(), SECOND, FRAME)
     disparity.image.height, disparity.image.width, disparity.image.step = h, w, 4 * w
     disparity.image.data = array.array('B', np.nan_to_num(result.disparity).astype(float)
                                        .tobytes())
-    fields = array_to_image_fields(left, 'bgr8')
     info = infos(left.shape, p_zero=True)
     send_all(peer, [rgb, xyz], {
-        'left/image_rect_color': stamped(Image(**{**fields, 'data': fields['data'].tobytes()}), 2),
-        'left/camera_info': stamped(info['left'], 2),
-        'right/camera_info': stamped(info['right'], 2), 'disparity': disparity})
+        'left/image_rect_color': image_msg(left, 'bgr8', SECOND, FRAME),
+        'left/camera_info': stamped(info['left'], SECOND, FRAME),
+        'right/camera_info': stamped(info['right'], SECOND, FRAME), 'disparity': disparity})
     wait_for(lambda: all(clouds), 'both clouds')
     assert [c[0].point_step for c in clouds] == [32, 16]
     assert all(np.isnan(cloud(c[0])[:, :, :3]).all() for c in clouds)
