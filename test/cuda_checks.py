@@ -235,26 +235,29 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
         cfg = StereoConfig.for_cost(kind, 'paper', max_disp=ND, paths=paths, bf16=False,
                                     gcp_lr_check=True, subpixel=True)
         on_cpu = StereoPipeline(cfg)
-        cpu = on_cpu(*crop, confidence=cnn)
+        cpu = on_cpu(*crop, cnn=cnn)
         pipe = StereoPipeline(cfg.replace(device='cuda'))
-        result = pipe(*crop, confidence=cnn)
+        result = pipe(*crop, cnn=cnn)
         np.testing.assert_array_equal(result.gcp, cpu.gcp)
         # the summed costs read back for background_ratio, of pixels all over the crop
         rng = np.random.default_rng(0)
         rows, cols = (rng.integers(0, n, 50).astype(np.intp) for n in crop[0].shape)
         at = rng.integers(0, ND, (50, 4)).astype(np.intp)
-        got, want = pipe.summed_costs(rows, cols, at), on_cpu.summed_costs(rows, cols, at)
-        kept = on_cpu._workspace['total']  # the path sums of the pair
+        got, want = (p.backend.costs_at(p.backend.kept['total'], rows, cols, at)
+                     for p in (pipe, on_cpu))
+        kept = on_cpu.backend.kept['total']  # the path sums of the pair
         np.testing.assert_array_equal(want, kept[rows[:, None], cols[:, None], at])
         switched = on_cpu.with_config(cfg.replace(device='cuda'))  # a live switch
-        switched(*crop, confidence=cnn)
-        assert 'total' in on_cpu._workspace and not {'cost', 'total'} & set(switched._workspace)
+        switched(*crop, cnn=cnn)
+        assert switched.backend is not on_cpu.backend  # the CPU's buffers stay the CPU's
+        assert on_cpu.backend.kept['total'] is kept and 'total' in switched.backend.kept
         assert got.dtype == want.dtype
         if kind == 'census':
             np.testing.assert_array_equal(result.disparity, cpu.disparity)
             np.testing.assert_array_equal(got, want)
-            # computed on the device (postprocess_cuda): the box means round differently
-            np.testing.assert_allclose(result.confidence, cpu.confidence, atol=1e-5, rtol=0)
+            # computed on the device (disparity_confidence_cuda): box means round differently
+            np.testing.assert_allclose(result.disparity_confidence, cpu.disparity_confidence,
+                                       atol=1e-5, rtol=0)
             assert 'disparity_confidence' in result.seconds
         else:  # SAD costs round differently: the last bits, and near-ties (flips at SAD near-ties)
             assert np.mean(~np.isclose(result.disparity, cpu.disparity, atol=1e-4)) < 0.01
@@ -263,12 +266,12 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
     # plain SGM for gcp_plain_check and plain_check, into the path sums the GCPs' SGM reuses
     cfg = StereoConfig.for_cost('census', 'paper', max_disp=ND, paths=4, bf16=False,
                                 plain_check=1.0, gcp_plain_check=True)
-    cpu = StereoPipeline(cfg)(*crop, confidence=cnn)
-    result = pipe.with_config(cfg.replace(device='cuda'))(*crop, confidence=cnn)
+    cpu = StereoPipeline(cfg)(*crop, cnn=cnn)
+    result = pipe.with_config(cfg.replace(device='cuda'))(*crop, cnn=cnn)
     np.testing.assert_array_equal(result.gcp, cpu.gcp)
     np.testing.assert_array_equal(result.disparity, cpu.disparity)
     assert np.isnan(cpu.disparity).mean() > 0.001 and 'plain_sgm' in result.seconds
-    unchecked = StereoPipeline(cfg.replace(gcp_plain_check=False))(*crop, confidence=cnn)
+    unchecked = StereoPipeline(cfg.replace(gcp_plain_check=False))(*crop, cnn=cnn)
     assert cpu.gcp.sum() < unchecked.gcp.sum()
     own = pipe.with_config(StereoConfig.for_cost('census', max_disp=ND, paths=4, bf16=False,
                                                  cnn_filter_radius=0, device='cuda'))(*crop)
@@ -290,6 +293,16 @@ def test_cuda_pipeline_downsample(crop):
     want = StereoPipeline(cfg)(left, right).disparity
     got = StereoPipeline(cfg.replace(device='cuda'))(left, right).disparity
     np.testing.assert_array_equal(got, want)
+
+
+def test_cuda_pipeline_median(crop, cnn):
+    """The 3x3 median on the device picks what cv2.medianBlur picks, edges included."""
+    cfg = StereoConfig.for_cost('census', max_disp=ND, paths=4, median=True, subpixel=True,
+                                valid_window=False, speckle_size=0)
+    want = StereoPipeline(cfg)(*crop, cnn=cnn)
+    got = StereoPipeline(cfg.replace(device='cuda'))(*crop, cnn=cnn)
+    np.testing.assert_array_equal(got.disparity, want.disparity)
+    np.testing.assert_allclose(got.disparity_confidence, want.disparity_confidence, atol=1e-5)
 
 
 def test_cuda_device_errors():

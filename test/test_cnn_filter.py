@@ -5,13 +5,13 @@ import shutil
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
 from gcp_stereo_ros.stereo import cnn_filter
-from gcp_stereo_ros.stereo.cnn import (calibrated, calibration_key, confidence, DEFAULT_WEIGHTS,
-                                       load_net, network_input, PAD, STRIP_ROWS)
+from gcp_stereo_ros.stereo.cnn import (calibrated, confidence, load_net, network_input, PAD,
+                                       STRIP_ROWS)
 from gcp_stereo_ros.stereo.cnn_cuda import device_confidence
 from gcp_stereo_ros.stereo.config import PRESETS, StereoConfig, UNFILTERED
 from gcp_stereo_ros.stereo.images import gray_pair
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from gcp_stereo_ros.stereo.postprocess import confidence_path
+from gcp_stereo_ros.stereo.weights import calibration_key, DEFAULT_WEIGHTS, side_file
 import numpy as np
 import pytest
 from scipy.ndimage import uniform_filter
@@ -145,8 +145,8 @@ def test_a_radius_without_a_calibration_is_refused(net, tmp_path):
     """Weights whose fits file has no calibration for the radius: a ValueError saying so."""
     weights = tmp_path / 'mine.pt'
     shutil.copy(DEFAULT_WEIGHTS, weights)
-    fits = json.loads(confidence_path('').read_text())
-    confidence_path(str(weights)).write_text(json.dumps(
+    fits = json.loads(side_file('').read_text())
+    side_file(str(weights)).write_text(json.dumps(
         {k: v for k, v in fits.items() if k != calibration_key(RADIUS)}))
     mine = load_net(weights)
     assert RADIUS not in mine.calibrations and calibration_key(RADIUS) in fits
@@ -156,7 +156,7 @@ def test_a_radius_without_a_calibration_is_refused(net, tmp_path):
     with pytest.raises(ValueError, match=f'cnn_filter_radius {RADIUS} .*fit_confidence'):
         StereoPipeline(StereoConfig(weights=str(weights), cnn_filter_radius=RADIUS)).net
     for bad in (None, {**fits[calibration_key(RADIUS)], 'probability': [2.0] * 3}):
-        confidence_path(str(weights)).write_text(json.dumps({**fits, calibration_key(2): bad}))
+        side_file(str(weights)).write_text(json.dumps({**fits, calibration_key(2): bad}))
         with pytest.raises(ValueError, match='invalid CNN confidence calibration'):
             load_net(weights)
 
@@ -165,11 +165,11 @@ def test_the_filter_rows_are_kept_between_pairs_and_let_go_without_it(tsukuba):
     pipe = StereoPipeline(StereoConfig(max_disp=16, cnn_filter_radius=RADIUS))
     left, right = tsukuba.left[:80, :120], tsukuba.right[:80, :120]
     pipe(left, right)
-    kept = pipe._workspace['cnn_filter']
+    kept = pipe.backend.kept['scratch']
     pipe(left, right)
-    assert pipe._workspace['cnn_filter'] is kept
+    assert pipe.backend.kept['scratch'] is kept
     pipe.with_config(pipe.config.replace(cnn_filter_radius=0))(left, right)
-    assert 'cnn_filter' not in pipe._workspace
+    assert 'scratch' not in pipe.backend.kept
 
 
 def test_the_filter_is_on_by_default_and_off_in_the_paper_preset():

@@ -53,9 +53,9 @@ def test_arrays_kept_between_frames_leave_no_trace(motorcycle):
     for cost in ('census', 'sad'):
         pipe = StereoPipeline(StereoConfig.for_cost(cost, use_gcp=False, max_disp=32))
         first = pipe(left[crops[0]], right[crops[0]])
-        kept = pipe._workspace['total']
+        kept = pipe.backend.kept['total']
         second = pipe(left[crops[1]], right[crops[1]])
-        assert pipe._workspace['total'] is kept
+        assert pipe.backend.kept['total'] is kept
         fresh = StereoPipeline(pipe.config)(left[crops[1]], right[crops[1]])
         np.testing.assert_array_equal(second.disparity, fresh.disparity)
         assert not np.array_equal(first.disparity, second.disparity)
@@ -100,9 +100,9 @@ def test_plain_sgm_check_of_the_gcps_on_kitti_000035(data_dir):
     cfg = StereoConfig(max_disp=f.max_disp, subpixel=False, bf16=False, **UNFILTERED)
     pipe = StereoPipeline(cfg)
     checked = pipe(f.left, f.right)
-    cnn = checked.cof_c, checked.cof_d, checked.cof_dr
+    cnn = checked.cnn
     unchecked = pipe.with_config(cfg.replace(gcp_plain_check=False))(
-        f.left, f.right, confidence=cnn)
+        f.left, f.right, cnn=cnn)
     census = pipe.with_config(cfg.replace(use_gcp=False))(f.left, f.right)
     bad3 = [error_rates(r.disparity, f.gt, f.valid)['bad3'] for r in (checked, unchecked, census)]
     assert bad3[0] < bad3[2] - 0.04 and bad3[1] > bad3[2] + 0.1, bad3
@@ -152,10 +152,10 @@ def test_fixed_point_pipeline_matches_float32(motorcycle, monkeypatch):
     fixed = paper(left, right)
     conf = fixed.cof_c, fixed.cof_d, fixed.cof_dr
     fixed_tuned = tuned(left, right, conf)
-    assert paper._workspace['total'].dtype == np.uint16
+    assert paper.backend.kept['total'].dtype == np.uint16
     monkeypatch.setattr('gcp_stereo_ros.stereo.memory.fixed_point_scale', lambda cfg: None)
     assert (paper(left, right, conf).disparity != fixed.disparity).mean() < 1e-3
-    assert paper._workspace['total'].dtype == np.float32
+    assert paper.backend.kept['total'].dtype == np.float32
     np.testing.assert_array_equal(tuned(left, right, conf).disparity, fixed_tuned.disparity)
 
 
@@ -210,7 +210,7 @@ def test_gcp_beats_its_baseline_on_motorcycle(motorcycle):
     sad = pipe.with_config(
         StereoConfig.for_cost('sad', use_gcp=False, max_disp=64, p1=0.05, p2=1.0))(left, right)
     sad_gcp = pipe.with_config(StereoConfig.for_cost('sad', max_disp=64))(
-        left, right, confidence=(census_gcp.cof_c, census_gcp.cof_d, census_gcp.cof_dr))
+        left, right, cnn=census_gcp.cnn)
     assert (error_rates(sad_gcp.disparity, gt)['bad3']
             < error_rates(sad.disparity, gt)['bad3'] - 2.2)
 
@@ -242,7 +242,7 @@ def test_downsample_matches_the_binned_pair_and_scales_back(motorcycle):
                     ('consistent', 1), ('margin', 1)):
         np.testing.assert_array_equal(
             getattr(half, name), upsample(getattr(small, name) * k, 2, left.shape[:2]), name)
-    again = pipe(left, right, confidence=(half.cof_c, half.cof_d, half.cof_dr))
+    again = pipe(left, right, cnn=half.cnn)
     np.testing.assert_array_equal(again.disparity, half.disparity)
     assert {'downsample', 'upsample'} <= set(half.seconds)
 

@@ -7,13 +7,14 @@ float rounding and bf16 differences, and any real regression crosses them.
 import cv2
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
-from gcp_stereo_ros.stereo import postprocess_cuda
+from gcp_stereo_ros.stereo import disparity_confidence_cuda
 from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
+from gcp_stereo_ros.stereo.disparity_confidence import CONFIDENCE_FEATURES, features, margin
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from gcp_stereo_ros.stereo.postprocess import (background_fits, backgrounds, Confidence,
-                                               cut_short, FEATURES, features, invalidate,
-                                               margin, speckles, valid_window)
+from gcp_stereo_ros.stereo.postprocess import (background_fits, backgrounds, cut_short,
+                                               invalidate, speckles, valid_window)
 from gcp_stereo_ros.stereo.sgm import winners
+from gcp_stereo_ros.stereo.weights import confidence_fit
 import numpy as np
 import pytest
 import torch
@@ -159,9 +160,9 @@ def kitti(data_dir):
     for name in ('kitti2015/000031_10', 'kitti2012/000070_10'):
         frame = load_frame(data_dir, name)
         result = pipe(frame.left, frame.right)
-        cnn = result.cof_c, result.cof_d, result.cof_dr
+        cnn = result.cnn
         out[name] = frame, result, *(pipe.with_config(pipe.config.replace(**changes))(
-            frame.left, frame.right, confidence=cnn) for changes in (
+            frame.left, frame.right, cnn=cnn) for changes in (
                 {'background_ratio': 0.0}, {'plain_check': 0.0},
                 {**UNFILTERED, 'subpixel': False}))
     return out
@@ -198,7 +199,7 @@ def test_sad_defaults_leave_plain_check_off(data_dir):
     pipe = StereoPipeline(cfg)
     result = pipe(frame.left, frame.right)
     checked = pipe.with_config(cfg.replace(plain_check=1.5))(
-        frame.left, frame.right, confidence=(result.cof_c, result.cof_d, result.cof_dr))
+        frame.left, frame.right, cnn=result.cnn)
     r, c = (error_rates(x.disparity, frame.gt, frame.valid) for x in (result, checked))
     assert r['density'] > 70.0 and r['bad3'] < 8.0
     assert c['density'] < r['density'] - 15 and c['bad3'] > r['bad3'] + 10
@@ -210,7 +211,7 @@ def test_downsample_has_a_confidence_fit_of_its_own(data_dir):
     # 92.7 % and 3.34 %
     frame = load_frame(data_dir, 'kitti2012/000070_10')
     pipe = StereoPipeline(StereoConfig(downsample=2))
-    full = Confidence.load(StereoConfig())
+    full = confidence_fit(StereoConfig())
     assert pipe.fit is not None and not np.array_equal(pipe.fit.coef, full.coef)
     r = error_rates(pipe(frame.left, frame.right).disparity, frame.gt, frame.valid)
     assert r['density'] > 80.0 and r['bad3_published'] < 2.6
@@ -220,7 +221,7 @@ def test_confidence_is_calibrated_on_an_unseen_frame(kitti):
     """Check that in each confidence bin the share within 3 px is close to the predicted."""
     frame, *_, raw = kitti['kitti2012/000070_10']
     sel = np.isfinite(frame.gt) & frame.valid & np.isfinite(raw.disparity)
-    sure = raw.confidence[sel]
+    sure = raw.disparity_confidence[sel]
     right = np.abs(raw.disparity[sel] - frame.gt[sel]) <= 3
     for lo, hi in ((0.6, 0.8), (0.8, 0.9), (0.9, 0.97), (0.97, 1.01)):
         b = (sure >= lo) & (sure < hi)
@@ -231,10 +232,10 @@ def test_confidence_is_calibrated_on_an_unseen_frame(kitti):
 def test_published_confidence_and_paper_preset(kitti):
     frame, result, no_background, *_ = kitti['kitti2015/000031_10']
     published = np.isfinite(result.disparity)
-    assert (result.confidence[~published] == 0).all()
-    low = result.confidence[published] < StereoConfig().min_confidence
+    assert (result.disparity_confidence[~published] == 0).all()
+    low = result.disparity_confidence[published] < StereoConfig().min_confidence
     assert 0.005 < low.mean() < 0.08  # kept by the background test: 5.6 % measured
-    kept = no_background.confidence[np.isfinite(no_background.disparity)]
+    kept = no_background.disparity_confidence[np.isfinite(no_background.disparity)]
     assert (kept >= StereoConfig().min_confidence).all()
     paper = StereoConfig.for_cost('census', 'paper')
     assert not (paper.valid_window or paper.lr_check or paper.uniqueness_ratio
@@ -251,7 +252,8 @@ def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
 
     And for a radius > 0 the CNN calibration of that radius first, which theta reads.
     """
-    from gcp_stereo_ros.stereo.cnn import DEFAULT_WEIGHTS, load_net
+    from gcp_stereo_ros.stereo.cnn import load_net
+    from gcp_stereo_ros.stereo.weights import DEFAULT_WEIGHTS
     from gcp_stereo_ros.tools import fit_confidence
     weights = tmp_path / 'net.pt'
     weights.write_bytes(DEFAULT_WEIGHTS.read_bytes())
@@ -259,12 +261,12 @@ def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
                          'middlebury_v2/cones', '--downsample', '1', '2',
                          '--cnn-filter-radius', '0', '3', '--weights', str(weights)])
     cfg = StereoConfig(weights=str(weights), cnn_filter_radius=0)
-    fits = [Confidence.load(cfg.replace(downsample=f)) for f in (1, 2, 4)]
+    fits = [confidence_fit(cfg.replace(downsample=f)) for f in (1, 2, 4)]
     assert fits[0] is not None and fits[1] is not None and fits[2] is None  # 4 not fitted
     assert not np.array_equal(fits[0].coef, fits[1].coef)
-    filtered = Confidence.load(cfg.replace(cnn_filter_radius=3))
+    filtered = confidence_fit(cfg.replace(cnn_filter_radius=3))
     assert filtered is not None and not np.array_equal(filtered.coef, fits[0].coef)
-    assert Confidence.load(cfg.replace(cnn_filter_radius=4)) is None
+    assert confidence_fit(cfg.replace(cnn_filter_radius=4)) is None
     assert set(load_net(weights).calibrations) == {0, 1, 3}  # 1: radius 3 at downsample 2
     # each full-size pixel with ground truth is a sample, labelled by its own error
     frame = load_frame(data_dir, 'kitti2015/000031_10')
@@ -272,30 +274,31 @@ def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
                           **UNFILTERED)
     result = StereoPipeline(config)(frame.left, frame.right)
     feats, correct = fit_confidence.samples(result, config, frame.gt, frame.valid)
-    assert feats.shape == (len(FEATURES), len(correct)) and len(correct) > 10000
+    assert feats.shape == (len(CONFIDENCE_FEATURES), len(correct)) and len(correct) > 10000
     assert 0.9 < correct.mean() < 1.0
     sure = fits[1](feats)
     assert abs(sure.mean() - correct.mean()) < 0.05  # calibrated on the frames it was fitted on
 
 
 def test_the_gpu_twins_of_the_confidence_equal_the_host(data_dir):
-    """postprocess_cuda (torch, here on the CPU) against postprocess, on KITTI 000070."""
+    """disparity_confidence_cuda (torch, here on the CPU) against the host, on KITTI 000070."""
     frame = load_frame(data_dir, 'kitti2012/000070_10')
     pipe = StereoPipeline(StereoConfig(bf16=False, **UNFILTERED))
     r = pipe(frame.left, frame.right)
-    _, _, s_best, s_second = winners(pipe._workspace['total'], True, True)
+    _, _, s_best, s_second = winners(pipe.backend.kept['total'], True, True)
     on = [torch.from_numpy(a) for a in (s_best, s_second)]
-    np.testing.assert_array_equal(postprocess_cuda.margin(*on).numpy(), margin(s_best, s_second))
+    np.testing.assert_array_equal(disparity_confidence_cuda.margin(*on).numpy(),
+                                  margin(s_best, s_second))
     for rows, cols in ((slice(None), slice(None)), (slice(100, 108), slice(600, 616))):
         # the whole frame, and a cut smaller than the 25 px window (borders reflected again)
         host = [None if a is None else np.ascontiguousarray(a[rows, cols])
                 for a in (r.disparity, r.consistent, r.margin, r.cof_c, r.cof_d, r.gcp)]
         want = features(*host)
-        got = postprocess_cuda.features(*(torch.from_numpy(a) for a in host))
+        got = disparity_confidence_cuda.features(*(torch.from_numpy(a) for a in host))
         np.testing.assert_allclose(got.numpy(), want, atol=2e-6, rtol=0)
-        np.testing.assert_allclose(postprocess_cuda.calibrated(pipe.fit, got).numpy(),
+        np.testing.assert_allclose(disparity_confidence_cuda.calibrated(pipe.fit, got).numpy(),
                                    pipe.fit(want), atol=1e-5, rtol=0)
         host[3:] = None, None, None  # without GCPs
-        np.testing.assert_allclose(postprocess_cuda.features(
+        np.testing.assert_allclose(disparity_confidence_cuda.features(
             *(None if a is None else torch.from_numpy(a) for a in host)).numpy(),
             features(*host), atol=2e-6, rtol=0)

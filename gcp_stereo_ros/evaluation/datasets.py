@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from skimage.data import stereo_motorcycle
 
 LAYOUTS = ('KITTI 2012 (training/image_0, image_1, disp_noc or disp_occ)',
            'KITTI 2015 (training/image_2, image_3, disp_noc_0 or disp_occ_0)',
@@ -191,7 +192,6 @@ def _frame(name, left, right, gt, max_disp, mask=None, gt_right=None, **extra):
 
 
 def _motorcycle():
-    from skimage.data import stereo_motorcycle
     left, right, gt = stereo_motorcycle()
     gt = np.where(np.isfinite(gt), gt, np.nan).astype(np.float32)
     # The calibration of these down-sampled images, as stereo_motorcycle's docstring gives it.

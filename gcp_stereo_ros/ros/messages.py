@@ -35,7 +35,7 @@ def output_messages(types, header, wanted, result, config, model, left, use_colo
     `result` is the pipeline's StereoResult, `model` the camera.StereoModel (None: no
     calibration, so no depth or points2 and f = t = 0), `left` the left image array the
     pipeline matched (the colour of points2). gcp_mask and confidence exist only with GCPs,
-    disparity_confidence only with a confidence fit (StereoResult.confidence);
+    disparity_confidence only with a confidence fit (StereoResult.disparity_confidence);
     disparity_color is the disparity colour-mapped (bgr8, `color_map`).
     """
     out = {}
@@ -48,9 +48,9 @@ def output_messages(types, header, wanted, result, config, model, left, use_colo
                                             data)
         if 'confidence' in wanted:
             out['confidence'] = image_message(types, header, result.cof_c, '32FC1', data)
-    if result.confidence is not None and 'disparity_confidence' in wanted:
-        out['disparity_confidence'] = image_message(types, header, result.confidence, '32FC1',
-                                                    data)
+    if result.disparity_confidence is not None and 'disparity_confidence' in wanted:
+        out['disparity_confidence'] = image_message(
+            types, header, result.disparity_confidence, '32FC1', data)
     if 'disparity_color' in wanted:
         out['disparity_color'] = image_message(
             types, header, color_map(result.disparity, config.max_disp), 'bgr8', data)

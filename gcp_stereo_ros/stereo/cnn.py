@@ -32,7 +32,6 @@ give the raw cosine. The guided-filtered confidence (`cnn_filter`) has calibrati
 own, one per radius, in the fits file beside the weights (`tools/fit_confidence.py`).
 """
 import functools
-import json
 from pathlib import Path
 import time
 
@@ -45,14 +44,13 @@ import torch.nn.functional as F
 from . import cnn_filter
 from .cost import check_max_disp
 from .images import gray_pair, standardize
+from .weights import cnn_calibrations, weights_path
 
 PATCH = 9
 FEATURES = 64
 PAD = PATCH // 2
 EPS = 1e-8
 STRIP_ROWS = 64
-DEFAULT_WEIGHTS = Path(__file__).parents[1] / 'weights' / 'gcp_cnn.pt'
-CALIBRATION_KEY = 'cnn_filter_radius='  # + the radius: a calibration's key in the fits file
 
 
 class GcpNet(nn.Module):
@@ -87,13 +85,12 @@ def load_net(path=None, device='cpu'):
     Return a GcpNet in eval mode with the weights at `path` (default: the shipped weights).
 
     The file holds {'state_dict': ..., 'meta': {...}, 'calibration': ...} (see
-    `gcp_stereo_ros.tools.train`); the calibrations of the guided-filtered confidence
-    (`cnn_filter`) are in the fits file beside it (`calibration_key`). Raises
-    FileNotFoundError if it does not exist, ValueError if it cannot be read as such, holds
-    NaN or infinite weights, or a calibration is invalid.
+    `gcp_stereo_ros.tools.train`); the calibrations of the guided-filtered confidence are
+    read from its side file (`weights.cnn_calibrations`). Raises FileNotFoundError if it
+    does not exist, ValueError if it cannot be read as such, holds NaN or infinite weights,
+    or a calibration is invalid.
     """
-    from .postprocess import confidence_path
-    path = Path(DEFAULT_WEIGHTS if path is None else path)
+    path = weights_path(path)
     if not path.is_file():
         raise FileNotFoundError(f'GCP CNN weights not found: {path}')
     try:
@@ -108,44 +105,8 @@ def load_net(path=None, device='cpu'):
                          '(a diverged training run?)')
     net.meta = blob.get('meta', {})
     net.path = path
-    net.calibrations = {0: _calibration(blob.get('calibration'), path)}
-    fits = confidence_path(str(path))
-    if fits.is_file():
-        try:
-            entries = json.loads(fits.read_text())
-        except (OSError, ValueError) as err:
-            raise ValueError(f'cannot read the confidence fits {fits}: {err}') from None
-        for key, entry in entries.items():
-            radius = key.removeprefix(CALIBRATION_KEY)
-            if key.startswith(CALIBRATION_KEY) and radius.isdigit() and int(radius) > 0:
-                net.calibrations[int(radius)] = _calibration(entry or {}, fits)
+    net.calibrations = cnn_calibrations(blob.get('calibration'), path)
     return net.to(device).eval()
-
-
-def calibration_key(radius):
-    """Return the key of the calibration of the confidence filtered with `radius` > 0."""
-    return f'{CALIBRATION_KEY}{radius}'
-
-
-def _calibration(stored, path):
-    """
-    Return the (cosine, probability) knots of a stored calibration, or None.
-
-    Raises ValueError unless both are finite 1-D float arrays of one length >= 2, the cosines
-    strictly increasing and the probabilities non-decreasing in [0, 1].
-    """
-    if stored is None:
-        return None
-    try:
-        x, y = (np.asarray(stored[k], np.float64) for k in ('cosine', 'probability'))
-        ok = (x.ndim == y.ndim == 1 and len(x) == len(y) >= 2 and np.isfinite(x).all()
-              and np.isfinite(y).all() and (np.diff(x) > 0).all() and (np.diff(y) >= 0).all()
-              and y[0] >= 0 and y[-1] <= 1)
-    except (KeyError, TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise ValueError(f'{path}: invalid CNN confidence calibration')
-    return x, y
 
 
 def calibration(net, radius):
@@ -370,22 +331,20 @@ def _first_layer_bf16(conv, x):
     return _conv_relu(conv, parts, weight, conv.bias.bfloat16())
 
 
-def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=False, seconds=None,
-               cancel=None, radius=0, scratch=None):
+def confidence(net, left, right, max_disp, bf16=False, volume=False, seconds=None, cancel=None,
+               radius=0, scratch=None):
     """
-    Return the CNN matching confidence of a rectified pair for disparities 0..max_disp-1.
+    Return the CNN confidence of a rectified pair for disparities 0..max_disp-1, on the CPU.
 
     `left`/`right`: anything `images.gray_pair` accepts; each is standardized on its own.
-    The convolutions run with torch on `device` ('cpu' or 'cuda[:N]'), both images as one
-    batch (see `descriptors`); `bf16` runs them in bfloat16 (3.5x faster on a CPU with
-    AVX512-BF16), 'auto' where `bf16_native(device)`. On the CPU the L2 normalization
+    The convolutions run with torch (a CPU net), both images as one batch (see
+    `descriptors`); `bf16`: True, False or 'auto' (`resolve_bf16`). The L2 normalization
     (float32) and the correlation run in a numba kernel, strip by strip, streaming over d
-    without materializing the volume; on a GPU in torch there (`cnn_cuda`). With
-    `radius` > 0 the volume of each strip is materialized and guided-filtered first
-    (`cnn_filter.StripFilter`, in `scratch` if given). `seconds`: a dict
-    that gains the wall time of the convolutions ('cnn') and of the correlation
-    ('confidence'). `cancel`: a CancelFlag, checked before each layer of each strip on the
-    CPU (raises Cancelled).
+    without materializing the volume. With `radius` > 0 the volume of each strip is
+    materialized and guided-filtered first (`cnn_filter.StripFilter`, in `scratch` if
+    given). `seconds`: a dict that gains the wall time of the convolutions ('cnn') and of
+    the correlation ('confidence'). `cancel`: a CancelFlag, checked before each layer of
+    each strip (raises Cancelled). `cnn_cuda.device_confidence` is the GPU twin.
 
     Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1] mapped through the
     net's calibration for `radius` (`calibrated`; the raw value without one), int32 (H, W)
@@ -399,18 +358,14 @@ def confidence(net, left, right, max_disp, device='cpu', bf16=False, volume=Fals
     h, w = lg.shape
     check_max_disp(max_disp, w)
     max_disp = int(max_disp)
-    bf16 = resolve_bf16(bf16, device)
-    x = network_input(lg, rg).to(device)
-    if x.device.type != 'cpu' and not volume:
-        from .cnn_cuda import device_confidence
-        return tuple(a.cpu().numpy()
-                     for a in device_confidence(net, x, max_disp, bf16, seconds, radius))
+    bf16 = resolve_bf16(bf16)
+    x = network_input(lg, rg)
     cof_c = np.empty((h, w), np.float32)
     cof_d = np.empty((h, w), np.int32)
     cof_dr = np.empty((h, w), np.int32)
     vol = np.empty((h, w, max_disp), np.float32) if volume else None
     if radius:
-        strips = cnn_filter.StripFilter(x[0, 0, PAD:PAD + h, PAD:PAD + w].cpu().numpy(), radius,
+        strips = cnn_filter.StripFilter(x[0, 0, PAD:PAD + h, PAD:PAD + w].numpy(), radius,
                                         max_disp, STRIP_ROWS, cof_c, cof_d, cof_dr, scratch)
     seconds = {} if seconds is None else seconds
     for stage in ('cnn', 'confidence'):

@@ -177,7 +177,7 @@ class StereoConfig:
         0 = no limit, else above min_depth.
     min_confidence : float
         Invalidate where the calibrated probability that the disparity is within 3 px of
-        the truth (`StereoResult.confidence`) is below this, where the pixel's background
+        the truth (`StereoResult.disparity_confidence`) is below this, where the pixel's background
         fits (`background_ratio`); in [0, 1], 0 = off.
     background_ratio : float
         A pixel below min_confidence goes only where its background, the smaller disparity

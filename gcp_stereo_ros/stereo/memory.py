@@ -9,6 +9,7 @@ import ctypes
 import numpy as np
 
 from . import cost as cost_mod
+from .cnn_filter import scratch_size
 from .config import DOWNSAMPLE
 from .sgm import directions, path_sum_bound
 
@@ -107,7 +108,6 @@ def _memory_terms(cfg, height, width):
         pixel = CNN_PIXEL_BYTES + (GUIDE_PIXEL_BYTES if cfg.matched_radius else 0)
         fixed = max(fixed, pixel * h * w + STRIP_LAYERS * strip)
         if cfg.matched_radius:  # cnn_filter.StripFilter's rows, kept as the volumes are
-            from .cnn_filter import scratch_size
             per_disparity += 4 * scratch_size(h, w, 1, cfg.matched_radius, STRIP_ROWS)
     if f > 1:
         fixed += FULL_PIXEL_BYTES * height * width

@@ -1,5 +1,5 @@
 """
-What of the winner-takes-all disparity to publish, and how sure each pixel is; ROS-free.
+What of the winner-takes-all disparity to publish: the invalidation; ROS-free.
 
 `invalidate` marks NaN, in this order, the pixels
 - where the search was cut short (`valid_window`): within window // 2 of the image's edge
@@ -13,11 +13,12 @@ What of the winner-takes-all disparity to publish, and how sure each pixel is; R
 - that fail the uniqueness test (`uniqueness_ratio` u, OpenCV's uniquenessRatio): invalid
   where a disparity more than 1 px from the winner has S(d) * (100 - u) < S(winner) * 100;
 - whose depth is below `min_depth` or beyond `max_depth` metres (with a camera model);
-- whose calibrated confidence is below `min_confidence` and whose background fits
-  (`background_ratio` r): a pixel's background is the smaller disparity of the nearest
-  pixels left and right in its row that stay (published and at least min_confidence), what
-  the KITTI devkit's interpolation fills a gap with; it fits where its summed SGM cost
-  (the least at its rounded disparity and 1 px either side) is at most r times the winner's.
+- whose disparity confidence (`disparity_confidence`) is below `min_confidence` and
+  whose background fits (`background_ratio` r): a pixel's background is the smaller
+  disparity of the nearest pixels left and right in its row that stay (published and at
+  least min_confidence), what the KITTI devkit's interpolation fills a gap with; it fits
+  where its summed SGM cost (the least at its rounded disparity and 1 px either side) is at
+  most r times the winner's.
   A pixel whose costs rule its background out, a low-confidence object standing in front
   of its row, keeps its disparity; with r = 0 every pixel below min_confidence goes;
 - in speckles (OpenCV's filterSpeckles with stereo_image_proc's meaning): connected regions
@@ -32,29 +33,12 @@ A value of 0 (False) turns each off. The CPU and the CUDA pipeline give the same
 everything here runs on the matching grid, 1 / f of the images, before the result is blown
 up to full size: the sizes and disparities the parameters give in full-size pixels are
 scaled to it (a speckle of `speckle_size` / f^2 matching pixels, `speckle_range` / f).
-
-The confidence (`Confidence`) is the probability that the published disparity is within
-3 px of the truth, from what the pipeline knows of the pixel: the calibrated CNN confidence,
-whether it is a GCP and its CNN disparity agrees with the final one, the SGM cost margin
-1 - S(winner) / S(rival) and the left-right agreement. A logistic score of these, mapped
-through an isotonic fit, both fitted on the validation frames (`tools/fit_confidence.py`);
-the fit is stored beside the CNN weights (`<weights>.confidence.json`), one per method and
-downsample (`method_key`).
 """
-import json
-from pathlib import Path
-
 import cv2
-from numba import njit, prange
+from numba import njit
 import numpy as np
 
-CONFIDENCE_PX = 3  # the confidence is P(|d - truth| <= CONFIDENCE_PX)
 SPECKLE_SCALE = 16  # fixed-point steps per pixel of filterSpeckles' int16 disparity (OpenCV's)
-FEATURES = ('cnn_confidence', 'gcp', 'cnn_agrees', 'margin', 'sqrt_margin', 'lr_agrees',
-            'lr_agrees_around', 'margin_around', 'log_range_around', 'log_above_min',
-            'log_disparity', 'lr_agrees_wide', 'margin_wide')
-WIDE = 25  # px, the square of the wider neighbourhood features
-AROUND = 9  # px, the square of the neighbourhood features
 
 
 def valid_window(cfg, shape):
@@ -88,19 +72,6 @@ def cut_short(disp, cfg):
     return out
 
 
-def margin(s_best, s_second):
-    """
-    Return the SGM cost margin 1 - S(winner) / S(rival), float32 in [0, 1].
-
-    From `sgm.winners`' s_best and s_second; 1 where there is no rival or both are 0.
-    OpenCV's uniqueness test with ratio u, s_second * (100 - u) >= s_best * 100, is
-    margin >= u / 100.
-    """
-    with np.errstate(divide='ignore', invalid='ignore'):
-        m = 1.0 - s_best.astype(np.float64) / s_second
-    return np.where(np.isfinite(m), np.clip(m, 0.0, 1.0), 1.0).astype(np.float32)
-
-
 def depth_limits(cfg, camera):
     """
     Return (lowest, highest) disparity of depths within [min_depth, max_depth], or None.
@@ -114,95 +85,6 @@ def depth_limits(cfg, camera):
     high = ft / cfg.min_depth + offset if cfg.min_depth else np.inf
     low = ft / cfg.max_depth + offset if cfg.max_depth else -np.inf
     return low, high
-
-
-def features(disp, consistent, m, cof_c, cof_d, gcp):
-    """
-    Return the confidence's features of each pixel, float32 (len(FEATURES), H, W).
-
-    `m`: the `margin`; `cof_c`, `cof_d`, `gcp` None without GCPs. Each plane is written in
-    place: stacking them afterwards was half of the confidence's time.
-    """
-    planes = np.zeros((len(FEATURES), *disp.shape), np.float32)
-    (cnn, on_gcp, agrees, margin_, sqrt_margin, lr, lr_around, margin_around, spread, above,
-     log_disp, lr_wide, margin_wide) = planes
-    if cof_c is not None:
-        cnn[:], on_gcp[:], agrees[:] = cof_c, gcp, np.abs(cof_d - disp) <= 1
-    margin_[:], lr[:] = m, consistent
-    np.sqrt(m, out=sqrt_margin)
-    kernel = np.ones((AROUND, AROUND), np.uint8)
-    low = cv2.erode(disp, kernel, borderType=cv2.BORDER_REPLICATE)
-    high = cv2.dilate(disp, kernel, borderType=cv2.BORDER_REPLICATE)
-    for src, dst, size in ((lr, lr_around, AROUND), (m, margin_around, AROUND),
-                           (lr, lr_wide, WIDE), (m, margin_wide, WIDE)):
-        cv2.blur(src, (size, size), dst=dst)
-    for value, dst in ((high - low, spread), (disp - low, above), (disp, log_disp)):
-        np.log1p(np.maximum(value, 0, out=dst), out=dst)
-    return planes
-
-
-def method_key(cfg):
-    """
-    Return the name of cfg's method as the confidence file keys it.
-
-    'census+gcp', 'sad', ...; with GCPs from the CNN volume filtered with radius r,
-    '+filter' and r appended; matched at 1 / downsample, '@' and the factor
-    ('census+gcp+filter4@2'): each has a fit of its own.
-    """
-    key = cfg.cost + ('+gcp' if cfg.use_gcp else '')
-    key += f'+filter{cfg.cnn_filter_radius}' if cfg.use_gcp and cfg.cnn_filter_radius else ''
-    return key + (f'@{cfg.downsample}' if cfg.downsample > 1 else '')
-
-
-def confidence_path(weights):
-    """Return the confidence file beside `weights` ('' = the shipped weights)."""
-    from .cnn import DEFAULT_WEIGHTS
-    return Path(weights or DEFAULT_WEIGHTS).with_suffix('.confidence.json')
-
-
-class Confidence:
-    """A fitted confidence: logistic weights of FEATURES, then isotonic knots (score, P)."""
-
-    def __init__(self, coef, knots):
-        self.coef = np.asarray(coef, np.float64)
-        self.knots = tuple(np.asarray(k, np.float64) for k in knots)
-        if self.coef.shape != (len(FEATURES) + 1,) or len(self.knots[0]) < 2:
-            raise ValueError(f'a confidence needs {len(FEATURES) + 1} weights and 2+ knots')
-
-    @classmethod
-    def load(cls, cfg):
-        """Return the fit of cfg's method beside cfg's weights, or None if there is none."""
-        path = confidence_path(cfg.weights)
-        if not path.is_file():
-            return None
-        try:
-            entry = json.loads(path.read_text()).get(method_key(cfg))
-            if entry is None:
-                return None
-            if entry['features'] != list(FEATURES):
-                raise ValueError(f'fitted on features {entry["features"]}, this version has '
-                                 f'{list(FEATURES)}: fit it again (tools/fit_confidence.py)')
-            return cls(entry['coef'], entry['knots'])
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise ValueError(f'cannot read the confidence fit {path}: {err}') from None
-
-    def score(self, planes):
-        """Return the logistic score of `features`' planes (len(FEATURES), ...), float32."""
-        return (np.tensordot(self.coef[1:].astype(np.float32), planes, 1)
-                + np.float32(self.coef[0]))
-
-    def __call__(self, planes):
-        """Return the probability that each pixel is within 3 px, float32 (H, W)."""
-        return _interp(self.score(planes), *self.knots)
-
-
-@njit(parallel=True, cache=True)
-def _interp(x, xp, fp):
-    """Return np.interp(x, xp, fp) as float32, the rows (first axis) of `x` in parallel."""
-    out = np.empty(x.shape, np.float32)
-    for row in prange(x.shape[0]):
-        out[row] = np.interp(x[row], xp, fp)
-    return out
 
 
 def speckles(disp, size, max_diff):
@@ -273,7 +155,7 @@ def background_fits(disp, low, costs, cfg):
 
     See the module's docstring. `costs(rows, cols, disparities)` gives the summed SGM costs
     of the pixels (rows[i], cols[i]) at disparities[i, :] in [0, cfg.matched_disp - 1],
-    (n,) (n,) (n, k) intp -> (n, k) (the pipeline's `StereoPipeline.summed_costs`); a low
+    (n,) (n,) (n, k) intp -> (n, k) (a backend's `costs_at` of the summed costs); a low
     pixel without a background fits.
     """
     rows, cols, at = _lookups(disp, backgrounds(disp, low), cfg.matched_disp - 1)
@@ -285,17 +167,17 @@ def background_fits(disp, low, costs, cfg):
     return fits
 
 
-def invalidate(disp, consistent, m, cfg, camera=None, confidence=None, costs=None,
+def invalidate(disp, consistent, m, cfg, camera=None, disparity_confidence=None, costs=None,
                plain=None):
     """
     Set NaN in `disp` (float32, in place) where cfg's tests fail; return `disp`.
 
     Every array is on the matching grid (1 / cfg.downsample of the images), `disp` in its
     pixels; the depth limits, the speckle size and range and `plain_check`, given for the
-    full-size images, are scaled to it. `m`: the `margin`; `confidence`: the calibrated
-    confidence (float32) for `min_confidence`, None if there is none (then it is not
-    applied); `costs`: the summed SGM costs for `background_ratio` (see `background_fits`),
-    None: every pixel below min_confidence goes; `plain`: plain SGM's disparity for
+    full-size images, are scaled to it. `m`: the `margin`; `disparity_confidence`
+    (float32) for `min_confidence`, None if there is none (then it is not applied);
+    `costs`: the summed SGM costs for `background_ratio` (see `background_fits`), None:
+    every pixel below min_confidence goes; `plain`: plain SGM's disparity for
     `plain_check`, None without GCPs (then it is not applied).
     """
     f = cfg.downsample
@@ -310,8 +192,8 @@ def invalidate(disp, consistent, m, cfg, camera=None, confidence=None, costs=Non
         low, high = (np.float32(limit / f) for limit in limits)
         with np.errstate(invalid='ignore'):
             disp[(disp < low) | (disp > high)] = np.nan
-    if cfg.min_confidence and confidence is not None:
-        unsure = confidence < cfg.min_confidence
+    if cfg.min_confidence and disparity_confidence is not None:
+        unsure = disparity_confidence < cfg.min_confidence
         if cfg.background_ratio and costs is not None:
             unsure = background_fits(disp, unsure & np.isfinite(disp), costs, cfg)
         disp[unsure] = np.nan

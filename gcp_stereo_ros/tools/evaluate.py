@@ -25,6 +25,7 @@ from .cli import console_main, positive_int
 from ..evaluation.datasets import list_frames, load_frame
 from ..evaluation.metrics import error_rates
 from ..evaluation.viz import disparity_picture, save_png
+from ..stereo.backend import cnn_confidence
 from ..stereo.config import PRESETS, StereoConfig
 from ..stereo.images import gray_pair
 from ..stereo.pipeline import StereoPipeline
@@ -100,11 +101,10 @@ class Runner:
         if method == 'opencv-sgbm':
             return opencv_sgbm(left, right, max_disp), None, time.perf_counter() - t
         if method == 'cnn':  # winner-takes-all of the CNN confidence volume alone
-            from ..stereo.cnn import confidence
             pipe = self.pipeline(cnn_method(method), max_disp)
             cfg = pipe.config
-            _, cof_d, _ = confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16,
-                                     radius=cfg.cnn_filter_radius)
+            cof_d = cnn_confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16,
+                                   cfg.cnn_filter_radius).cof_d
             return cof_d.astype(np.float32), None, time.perf_counter() - t
         result = self.pipeline(method, max_disp)(left, right)
         return result.disparity, result, time.perf_counter() - t

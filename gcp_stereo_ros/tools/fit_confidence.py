@@ -4,18 +4,18 @@ python -m gcp_stereo_ros.tools.fit_confidence: fit the confidences beside the CN
 For each `--cnn-filter-radius` r > 0 first the calibration of the CNN confidence
 guided-filtered with it (stereo.cnn_filter), as the training tool fits the unfiltered one:
 P(CNN disparity within 1 px) of the filtered maximum (`train.fit_calibration`), written
-under cnn.calibration_key(r), which theta then reads; likewise for r / f, the radius the
+under weights.calibration_key(r), which theta then reads; likewise for r / f, the radius the
 filter runs with at each `--downsample` f (StereoConfig.matched_radius). Then the
 confidence of the final disparity, for each method, downsample factor and radius.
 
-The confidence (stereo.postprocess.Confidence) is P(|d - truth| <= 3 px) of each pixel
+The disparity confidence (stereo.disparity_confidence) is P(|d - truth| <= 3 px) of each pixel
 that the search did not cut short. Fitted on the validation frames only (each frame weighted
-equally): a logistic regression of postprocess.FEATURES, then an isotonic map of its score
+equally): a logistic regression of CONFIDENCE_FEATURES, then an isotonic map of its score
 (`train.fit_calibration`, as the CNN's confidence is calibrated). The pixels are those of
 each method's default pipeline that `valid_window` keeps (the features are those of the
 WTA disparity before any test), so the fit holds whatever other test is on. Writes one
-entry per method, downsample factor and radius (postprocess.method_key) into the file beside
-the weights (postprocess.confidence_path), keeping the other entries.
+entry per method, downsample factor and radius (weights.method_key) into the side file of
+the weights (weights.side_file), keeping the other entries.
 
 The shipped fits (the manual, doc/published.md):
     python -m gcp_stereo_ros.tools.fit_confidence --dataset ../shared/data \
@@ -34,9 +34,11 @@ from .cli import console_main
 from .evaluate import Runner, select_frames
 from ..evaluation.datasets import load_frame
 from ..stereo.config import DOWNSAMPLE, RANGES, StereoConfig, UNFILTERED
+from ..stereo.disparity_confidence import (CONFIDENCE_FEATURES, CONFIDENCE_PX, ConfidenceFit,
+                                           features)
 from ..stereo.images import subsample, upsample
-from ..stereo.postprocess import (Confidence, confidence_path, CONFIDENCE_PX, cut_short,
-                                  FEATURES, features, method_key)
+from ..stereo.postprocess import cut_short
+from ..stereo.weights import calibration_key, method_key, side_file
 
 RIDGE = 1e-6  # keeps the logistic fit defined when a feature is constant on the samples
 ITERATIONS = 25
@@ -58,19 +60,19 @@ def logistic(x, y, w):
 
 
 def fit(feats, correct, weight):
-    """Return the Confidence fitted on n samples: features (len(FEATURES), n), correct, weight."""
+    """Return the ConfidenceFit of n samples: features (n features, n), correct, weight."""
     from .train import fit_calibration  # torch is loaded with it
     coef = logistic(feats.T, correct.astype(np.float64), weight)
-    model = Confidence(coef, ([0.0, 1.0], [0.0, 1.0]))
+    model = ConfidenceFit(coef, ([0.0, 1.0], [0.0, 1.0]))
     knots = fit_calibration(model.score(feats).astype(np.float64), correct, weight)
-    return Confidence(coef, knots)
+    return ConfidenceFit(coef, knots)
 
 
 def samples(result, config, gt, valid):
     """
     Return (features, correct) of the n pixels with ground truth that `valid_window` keeps.
 
-    features: (len(FEATURES), n) float32, correct: (n,) bool.
+    features: (n features, n) float32, correct: (n,) bool.
 
     `result`: of `config` with every invalidation off. The features are computed on the
     matching grid (1 / downsample), as the pipeline computes them; each full-size pixel is a
@@ -123,7 +125,7 @@ def main(argv=None):
 
     frames = [load_frame(source, name) for source, name in select_frames(
         args.dataset, split_frames(args.split) if args.split else args.frames)]
-    path = confidence_path(args.weights)
+    path = side_file(args.weights)
     fits = json.loads(path.read_text()) if path.is_file() else {}
     # the radii filtered with: each r, and r / f on the matching grid of each factor f
     matched = sorted({StereoConfig(cnn_filter_radius=radius, downsample=factor).matched_radius
@@ -131,7 +133,7 @@ def main(argv=None):
                       if radius})
     if matched:
         from .train import calibration_samples, fit_calibration  # torch is loaded with them
-        from ..stereo.cnn import calibration_key, load_net
+        from ..stereo.cnn import load_net
         net = load_net(args.weights or None)
     for radius in matched:
         cosine, probability = fit_calibration(*calibration_samples(net, frames, radius))
@@ -158,7 +160,7 @@ def main(argv=None):
                 model = fit(np.concatenate(feats, axis=1), np.concatenate(correct),
                             np.concatenate(weight))
                 key = method_key(config)
-                fits[key] = {'features': list(FEATURES), 'coef': model.coef.tolist(),
+                fits[key] = {'features': list(CONFIDENCE_FEATURES), 'coef': model.coef.tolist(),
                              'knots': [k.tolist() for k in model.knots],
                              'frames': [frame.name for frame in frames]}
                 print(f'{key}: {len(frames)} frames, confidence from '

@@ -89,11 +89,11 @@ def sweep(args):
                 continue
             pipe = base.with_config(config)
             key = tuple(getattr(config, f) for f in CNN_FIELDS)
-            result = pipe(frame.left, frame.right, confidence=outputs.get(key))
+            result = pipe(frame.left, frame.right, cnn=outputs.get(key))
             row = {'frame': name, **point,
                    'bad3': error_rates(result.disparity, frame.gt, frame.valid)['bad3']}
             if result.gcp is not None:
-                outputs[key] = (result.cof_c, result.cof_d, result.cof_dr)
+                outputs[key] = result.cnn
                 row['gcp_density'], row['gcp_accuracy'] = gcp_quality(
                     result.gcp, result.cof_d, frame.gt, frame.valid)
             rows.append(row)
@@ -160,14 +160,14 @@ def sparsify(args):
         frame = load_frame(source, name)
         _, result, _ = runner.run(args.method, frame.left, frame.right,
                                   args.max_disp or frame.max_disp)
-        if result.confidence is None:
+        if result.disparity_confidence is None:
             raise ValueError(f'{args.method}: no confidence fit beside the weights '
                              '(python -m gcp_stereo_ros.tools.fit_confidence)')
         sel = np.isfinite(result.disparity) & np.isfinite(frame.gt)
         if frame.valid is not None:
             sel &= frame.valid
         err = np.abs(result.disparity[sel] - frame.gt[sel])
-        scores = {'disparity_confidence': result.confidence[sel], 'oracle': -err}
+        scores = {'disparity_confidence': result.disparity_confidence[sel], 'oracle': -err}
         if result.cof_c is not None:
             scores['CNN confidence'] = result.cof_c[sel]
         for key, score in scores.items():

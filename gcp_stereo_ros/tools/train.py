@@ -56,7 +56,8 @@ import yaml
 from .cli import console_main
 from .train_crops import Augment, crop_scores, CropLoss, draw_crop, hinge, views
 from ..evaluation.datasets import load_frames
-from ..stereo.cnn import confidence, GcpNet, load_net
+from ..stereo.backend import cnn_confidence
+from ..stereo.cnn import GcpNet, load_net
 from ..stereo.gcp import gcp_quality
 
 CROP = (32, 256)  # left pixels per crop (rows, columns)
@@ -103,7 +104,7 @@ def validate(net, frames, thetas):
         for f in frames:
             rng = np.random.default_rng(0)
             loss = float(hinge(*crop_scores(net, draw_crop(views(f, device)[0], rng))).mean())
-            cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp, device)
+            cof_c, cof_d, _ = cnn_confidence(net, f.left, f.right, f.max_disp, str(device))
             stats = {f'{t:g}': gcp_quality(cof_c > t, cof_d, f.gt, f.valid) for t in thetas}
             out[f.name] = {'loss': loss,
                            'wta_accuracy': gcp_quality(cof_c >= 0, cof_d, f.gt, f.valid)[1],
@@ -149,7 +150,8 @@ def calibration_samples(net, frames, radius=0):
     device = next(net.parameters()).device
     out = []
     for f in frames:
-        cof_c, cof_d, _ = confidence(net, f.left, f.right, f.max_disp, device, radius=radius)
+        cof_c, cof_d, _ = cnn_confidence(net, f.left, f.right, f.max_disp, str(device),
+                                         radius=radius)
         sel = f.valid & np.isfinite(f.gt)
         correct = np.abs(cof_d[sel] - f.gt[sel]) <= CALIBRATION_PX
         out.append((cof_c[sel], correct.astype(np.float64), np.full(sel.sum(), 1.0 / sel.sum())))

@@ -1,20 +1,18 @@
 """
-The confidence of the published disparity on a GPU: torch twins of `postprocess`'s.
+The disparity confidence on a GPU: torch twins of `disparity_confidence`'s functions.
 
-`margin`, `features` and `calibrated` (a `postprocess.Confidence` applied) compute on the
-device what the host computed after the download: a third of a KITTI pair's time on an
-H200 (doc/speed.md). The results equal the host's within float rounding: cv2's box
-filter and torch's pooling sum in other orders, so the window means differ in the last bits.
+`margin`, `features` and `calibrated` (a `ConfidenceFit` applied) equal the host's within
+float rounding: cv2's box filter and torch's pooling sum in other orders.
 """
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .postprocess import AROUND, FEATURES, WIDE
+from .disparity_confidence import AROUND, CONFIDENCE_FEATURES, WIDE
 
 
 def margin(s_best, s_second):
-    """Return `postprocess.margin` of device tensors."""
+    """Return `disparity_confidence.margin` of device tensors."""
     m = 1.0 - s_best.double() / s_second.double()
     return torch.where(torch.isfinite(m), m.clamp(0.0, 1.0), 1.0).float()
 
@@ -44,8 +42,9 @@ def _max_filter(x, size):
 
 
 def features(disp, consistent, m, cof_c, cof_d, gcp):
-    """Return `postprocess.features` of device tensors, (len(FEATURES), H, W) float32."""
-    planes = torch.zeros((len(FEATURES), *disp.shape), dtype=torch.float32, device=disp.device)
+    """Return `disparity_confidence.features` of device tensors, float32 (n, H, W)."""
+    planes = torch.zeros((len(CONFIDENCE_FEATURES), *disp.shape), dtype=torch.float32,
+                         device=disp.device)
     (cnn, on_gcp, agrees, margin_, sqrt_margin, lr, lr_around, margin_around, spread, above,
      log_disp, lr_wide, margin_wide) = planes
     if cof_c is not None:
@@ -65,7 +64,7 @@ def features(disp, consistent, m, cof_c, cof_d, gcp):
 
 
 def calibrated(fit, planes):
-    """Return `fit(planes)` (a `postprocess.Confidence`) of device planes, float32."""
+    """Return `fit(planes)` (a `ConfidenceFit`) of device planes, float32."""
     coef = torch.from_numpy(fit.coef.astype(np.float32)).to(planes.device)
     score = (torch.tensordot(coef[1:], planes, 1) + coef[0]).double()
     xp, fp = (torch.from_numpy(k).to(planes.device) for k in fit.knots)
