@@ -14,8 +14,9 @@ with `lifecycle:=true`.
 """
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
-from .node import GcpStereoNode, main as node_main
+from .node import GcpStereoNode
 from .params import NODE_NAME
+from .process import run_node
 
 # what activate creates, as Node lists them: the Node method that destroys one
 DESTROY = {'publishers': 'destroy_publisher', 'subscriptions': 'destroy_subscription',
@@ -86,4 +87,4 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
 
 
 def main(args=None):
-    return node_main(args, GcpStereoLifecycleNode, __doc__, 'gcp_stereo_lifecycle_node')
+    return run_node(GcpStereoLifecycleNode, __doc__, 'gcp_stereo_lifecycle_node', args)

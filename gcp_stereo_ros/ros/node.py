@@ -26,55 +26,31 @@ Start-up settings that cannot work (invalid values, unknown names, a missing wei
 exit code 2. Ctrl-C or SIGTERM stops a frame in progress between two rows of a kernel or
 two CNN layers, so the process exits promptly.
 """
-import array
-import gc
 import math
-import os
-import signal
-import sys
 import time
 import traceback
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from rclpy.utilities import remove_ros_args
-from sensor_msgs.msg import Image, PointCloud2, PointField, RegionOfInterest
+from sensor_msgs.msg import Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from .camera import camera_model, depth_scale, Rectifier
 from .diagnostics import cnn_precision, Diagnostics
 from .live_params import LiveParameters
 from .messages import output_messages, OUTPUTS
-from .params import check_params_files, INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
+from .params import INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
+from .process import run_node
+from .rclpy_messages import ros_data, RosTypes
 from .rosimage import message_to_array
 from .stereo_input import StereoInput
 from .worker import NewestWorker
 from ..stereo.cancel import CancelFlag, Cancelled
-from ..stereo.memory import mmap_large_arrays
 
 LOG_PERIOD = 5.0  # seconds between two logs of the same text
 STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
 # computed only while subscribed
 ON_DEMAND = ('confidence', 'disparity_confidence', 'depth', 'points2', 'disparity_color')
-
-
-class RosTypes:
-    """The message classes `messages` builds with: rclpy's."""
-
-    Image = Image
-    RegionOfInterest = RegionOfInterest
-    DisparityImage = DisparityImage
-    PointCloud2 = PointCloud2
-    PointField = PointField
-
-
-def ros_data(buffer):
-    """Wrap uint8 numpy data as array.array('B'), the one form rclpy takes unchecked."""
-    out = array.array('B')
-    out.frombytes(buffer)
-    return out
 
 
 class GcpStereoNode(Node):
@@ -263,65 +239,5 @@ class GcpStereoNode(Node):
         return super().destroy_node()
 
 
-def _cannot_start(err, prog=NODE_NAME):
-    """Print why the node cannot start, in one line; return the exit status."""
-    print(f'{prog}: error: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
-          file=sys.stderr)
-    return 2
-
-
-def _stop_once(signum, frame):
-    """
-    Stop on the first SIGINT or SIGTERM (KeyboardInterrupt) and ignore every later one.
-
-    Installed before rclpy.init, whose own handlers (which wake the executor) call it after
-    theirs. `ros2 launch` forwards the terminal's Ctrl-C, so the node gets two at once; a
-    second KeyboardInterrupt while stopping would abort the exit (with the worker thread
-    alive, the interpreter then dies in `terminate`).
-    """
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_IGN)
-    raise KeyboardInterrupt
-
-
-def main(args=None, node_class=GcpStereoNode, doc=__doc__, prog=NODE_NAME):
-    """Run `node_class` (this node, or one of the package's others, with its `doc`, `prog`)."""
-    argv = sys.argv if args is None else args
-    try:
-        check_params_files(argv)  # rcl would say it with a traceback
-        extra = remove_ros_args(argv)[1:]
-    except Exception as err:  # rcl's own argument errors
-        return _cannot_start(err, prog)
-    if extra and extra[0] in ('-h', '--help'):
-        print(doc.strip())
-        return 0
-    if extra:  # ROS arguments go after --ros-args; anything else is a mistake
-        print(f'{prog}: error: unrecognized arguments: {" ".join(extra)} '
-              '(parameters go after --ros-args, e.g. --ros-args -p NAME:=VALUE)',
-              file=sys.stderr)
-        return 2
-    node = None
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, _stop_once)
-    try:
-        try:
-            mmap_large_arrays()
-            rclpy.init(args=argv)
-            node = node_class()
-        except Exception as err:  # settings that cannot work: one line, no traceback
-            return _cannot_start(err, prog)
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass  # Ctrl-C or shutdown, while starting or spinning
-    finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):  # stopping for another reason: the same
-            signal.signal(sig, signal.SIG_IGN)
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    if node is not None and not node.stopped:  # the interpreter's exit would abort on it
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)
-    gc.freeze()  # else the interpreter's exit spends about 0.7 s of CPU collecting objects
-    return 0
+def main(args=None):
+    return run_node(GcpStereoNode, __doc__, NODE_NAME, args)
