@@ -13,15 +13,9 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 
+from .cnn_setup import cnn_precision
+
 NO_PAIR_SECONDS = 5.0  # images arriving this long without a pair -> WARN
-
-
-def cnn_precision(config):
-    """Say how a StereoConfig runs the CNN: 'bfloat16', 'float32' or 'not used'."""
-    if not config.use_gcp:
-        return 'not used'
-    from ..stereo.cnn import resolve_bf16  # torch is loaded already when GCPs are used
-    return 'bfloat16' if resolve_bf16(config.bf16, config.device) else 'float32'
 
 
 class Diagnostics:

@@ -3,8 +3,10 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
 
-from .params import (BY_NAME, check_names, coerce, config_from_params, config_warnings,
-                     inconsistencies, make_sync, PARAMS, RCLPY_PARAMS, uncrossed)
+from .cnn_setup import config_warnings, load_cnn
+from .params import (BY_NAME, check_names, coerce, config_from_params, inconsistencies,
+                     PARAMS, RCLPY_PARAMS, uncrossed)
+from .sync import image_sync
 from ..stereo.pipeline import StereoPipeline
 
 
@@ -67,9 +69,7 @@ class LiveParameters:
         check_names(n for n in node.list_parameters([], 0).names  # a misspelled start-up name
                     if n not in RCLPY_PARAMS and not n.startswith('qos_overrides.'))
         self.values = {p.name: node.get_parameter(p.name).value for p in PARAMS}
-        self.pipeline = StereoPipeline(config_from_params(self.values))
-        if self.pipeline.config.use_gcp:
-            self.pipeline.net  # a missing or broken weights file stops the start here
+        self.pipeline = load_cnn(StereoPipeline(config_from_params(self.values)))
         self._warn()
         self.pending = []
         self._candidate = None
@@ -106,10 +106,8 @@ class LiveParameters:
         values = {**self.values, **changes}
         try:
             config = config_from_params(uncrossed(values))  # every value valid on its own
-            make_sync(values)
-            pipeline = self.pipeline.with_config(config)
-            if config.use_gcp:
-                pipeline.net
+            image_sync(values)
+            pipeline = load_cnn(self.pipeline.with_config(config))
         except Exception as err:  # any invalid value is refused with its reason
             return SetParametersResult(successful=False, reason=str(err))
         pending = inconsistencies(values)

@@ -36,7 +36,8 @@ from sensor_msgs.msg import Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from .camera import camera_model, depth_scale, Rectifier
-from .diagnostics import cnn_precision, Diagnostics
+from .cnn_setup import cnn_precision
+from .diagnostics import Diagnostics
 from .live_params import LiveParameters
 from .messages import output_messages, OUTPUTS
 from .params import INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
