@@ -44,7 +44,7 @@ def test_transitions(graph):
     node, peer = graph(max_disparity=32)
     assert node.params is None and not node.has_parameter('census.theta')  # no CNN yet
     assert node.trigger_configure() == SUCCESS
-    assert node.params.pipeline.net is not None and node.has_parameter('census.theta')
+    assert node.pipeline.net is not None and node.has_parameter('census.theta')
     assert not peer.get_publishers_info_by_topic('/disparity')  # nothing published yet
     disparity = []
     peer.create_subscription(DisparityImage, 'disparity', disparity.append, 10)
@@ -62,7 +62,7 @@ def test_transitions(graph):
         assert node.stopped  # the worker thread has ended
         wait_for(lambda: not any(p.get_subscription_count() for p in pubs.values())
                  and not peer.get_publishers_info_by_topic('/disparity'), 'unsubscribed')
-    net = weakref.ref(node.params.pipeline.net)
+    net = weakref.ref(node.pipeline.net)
     assert node.trigger_cleanup() == SUCCESS and node.params is None
     assert net() is None  # the CNN is gone, not waiting for a garbage collection
     assert node.trigger_configure() == SUCCESS  # and again, with the declared values
@@ -78,7 +78,7 @@ def test_configure_fails_with_the_reason(graph):
     assert node.trigger_configure() == FAILURE and node.params is None  # still unconfigured
     assert node.set_parameters([Parameter('weights', value='')])[0].successful
     assert node.trigger_configure() == SUCCESS  # once fixed, it configures
-    assert node.params.pipeline.config.weights == ''
+    assert node.pipeline.config.weights == ''
 
 
 def test_a_destroyed_node_is_gone_and_leaves_the_logs_of_its_name(ros):

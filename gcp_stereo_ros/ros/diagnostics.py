@@ -62,7 +62,7 @@ class Diagnostics:
         rates = [(sample[i] - first[i]) / seconds for i in (5, 6)]
         rates.append((sample[3] - last[3]) / max(now - last[0], 1e-9))
         latency = node.take_latencies()
-        config = node.params.pipeline.config
+        config = node.pipeline.config
         sync = inp.sync
         values = {
             'left images/s': f'{rates[0]:.1f}', 'right images/s': f'{rates[1]:.1f}',

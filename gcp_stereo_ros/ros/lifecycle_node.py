@@ -40,7 +40,7 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
             self.params = None
             self.get_logger().error(f'cannot configure: {" ".join(str(err).split())}')
             return TransitionCallbackReturn.FAILURE
-        self.get_logger().info(f'configured: {self.params.pipeline.config}')
+        self.get_logger().info(f'configured: {self.pipeline.config}')
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state):
@@ -59,7 +59,7 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
 
     def on_cleanup(self, state):
         self.params.close()
-        self.params = None  # the last reference to the pipeline, its CNN and its arrays
+        self.params = self.pipeline = None  # the last references to its CNN and its arrays
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state):

@@ -17,9 +17,10 @@ Parameters (config/gcp_stereo.yaml) are live.
 Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
 `python -m gcp_stereo_ros.node`, each with the usual `--ros-args`.
 
-The node is three parts: `LiveParameters` (declare, validate, apply), `StereoInput`
-(subscriptions and pairing) and a `NewestWorker` thread that processes the newest pair
-and publishes here, so parameter requests are served while a frame is being processed.
+The node holds the `StereoPipeline` of its parameters and three parts: `LiveParameters`
+(declare, validate, apply), `StereoInput` (subscriptions and pairing) and a `NewestWorker`
+thread that processes the newest pair and publishes here, so parameter requests are
+served while a frame is being processed.
 
 Start-up settings that cannot work (invalid values, unknown names, a missing weights file,
 `device: cuda` without a GPU, an unreadable params file) end the process with one line and
@@ -36,7 +37,7 @@ from sensor_msgs.msg import Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from .camera import camera_model, depth_scale, Rectifier
-from .cnn_setup import cnn_precision
+from .cnn_setup import cnn_precision, config_warnings, load_cnn
 from .diagnostics import Diagnostics
 from .live_params import LiveParameters
 from .messages import output_messages, OUTPUTS
@@ -47,6 +48,7 @@ from .rosimage import message_to_array
 from .stereo_input import StereoInput
 from .worker import NewestWorker
 from ..stereo.cancel import CancelFlag, Cancelled
+from ..stereo.pipeline import StereoPipeline
 
 LOG_PERIOD = 5.0  # seconds between two logs of the same text
 STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
@@ -55,6 +57,8 @@ ON_DEMAND = ('confidence', 'disparity_confidence', 'depth', 'points2', 'disparit
 
 
 class GcpStereoNode(Node):
+
+    pipeline = None  # the StereoPipeline of the parameters, once configured
 
     def __init__(self, **kwargs):
         # Every start-up value is declared, so LiveParameters sees (and refuses) unknown names.
@@ -68,13 +72,15 @@ class GcpStereoNode(Node):
         self._activate()
 
     def _configure(self):
-        """Declare and check the parameters and load the CNN (a lifecycle node's configure)."""
+        """Declare and check the parameters, build the pipeline and load its CNN (configure)."""
         self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
         self.errors = 0
         self.last_error = ''
         self._cancel = None  # no worker yet
         self.stopped = True  # (no worker thread runs)
-        self.params = LiveParameters(self, on_change=self._on_params)
+        self.params = LiveParameters(self, check=self._check, on_change=self._on_params)
+        self.pipeline, self._checked = self._checked, None
+        self._warn_config()
 
     def _activate(self):
         """Start the worker, subscribe and publish (a lifecycle node's activate)."""
@@ -83,7 +89,7 @@ class GcpStereoNode(Node):
         self._worker = NewestWorker(self._process, 'gcp_stereo_worker',
                                     on_error=self._on_worker_error,
                                     on_idle=lambda: self.input.wake(),
-                                    on_quiet=lambda: self.params.pipeline.release())
+                                    on_quiet=lambda: self.pipeline.release())
         self.input = StereoInput(self, self.params.values, on_pair=self._on_pair,
                                  idle=lambda: self._worker.idle, log=self._log)
         # As image_pipeline's publishers on Jazzy: reliable, depth 1, QoS overridable.
@@ -100,7 +106,7 @@ class GcpStereoNode(Node):
         self.processed = 0
         self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
         self.diagnostics = Diagnostics(self)
-        config = self.params.pipeline.config
+        config = self.pipeline.config
         self.get_logger().info(f'ready: {config}; CNN descriptors: {cnn_precision(config)}')
 
     @property
@@ -119,12 +125,36 @@ class GcpStereoNode(Node):
         latency, self._latency = self._latency, []
         return latency
 
+    def _check(self, config):
+        """
+        Build the pipeline of `config` as `_checked`, its CNN loaded; raise if it cannot work.
+
+        LiveParameters' check, of the start-up values and of each request; the pipeline
+        built for a request keeps the current one's CNN and arrays where it can.
+        """
+        pipeline = (StereoPipeline(config) if self.pipeline is None
+                    else self.pipeline.with_config(config))
+        self._checked = load_cnn(pipeline)
+
     def _on_params(self, names):
+        """Take the parameters of a request: its pipeline, unless values wait; its topics."""
+        pipeline, self._checked = self._checked, None
+        if self.params.pending:
+            self.get_logger().warn('; '.join(self.params.pending) + ': waiting for that, the '
+                                   'node keeps its last consistent values: '
+                                   f'{self.pipeline.config}')
+        else:
+            self.pipeline = pipeline
+        self._warn_config()
         values = self.params.values
         if any(n in INPUT_PARAMS for n in names):
             self.input.subscribe(values)
         elif any(n in SYNC_PARAMS for n in names):
             self.input.reset_sync(values)
+
+    def _warn_config(self):
+        for text in config_warnings(self.pipeline):
+            self.get_logger().warn(text)
 
     def _on_pair(self, stamp, left_msg, right_msg, info):
         self._worker.put((stamp, left_msg, right_msg, info))
@@ -156,7 +186,7 @@ class GcpStereoNode(Node):
             self.get_logger().warn(text)
 
     def _process(self, stamp, left_msg, right_msg, info):
-        pipeline = self.params.pipeline
+        pipeline = self.pipeline
         values = self.params.values
         topics = self.input.topics()
         try:
