@@ -39,7 +39,13 @@ class Diagnostics:
         self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 1)
         self._started = time.monotonic()
         self._samples = deque()  # (time, images left, images right, processed, errors)
-        node.create_timer(1.0, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._timer = node.create_timer(1.0, self.publish,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def close(self):
+        """Stop publishing: destroy the publisher and the timer."""
+        self._node.destroy_timer(self._timer)
+        self._node.destroy_publisher(self._pub)
 
     def publish(self):
         node = self._node

@@ -57,33 +57,40 @@ ON_DEMAND = ('confidence', 'disparity_confidence', 'depth', 'points2', 'disparit
 
 
 class GcpStereoNode(Node):
+    """
+    The node: configured (parameters, pipeline), then active (worker, topics) when made.
 
-    pipeline = None  # the StereoPipeline of the parameters, once configured
+    Its steps are a lifecycle node's: `configure`, `activate`, `deactivate`, `cleanup`.
+    """
+
+    params = None  # LiveParameters, while configured
+    pipeline = None  # the StereoPipeline of the parameters, while configured
+    active = False  # the worker started, the topics subscribed and published
+    stopped = True  # no worker thread runs
+    _cancel = None  # the worker's CancelFlag, while active
 
     def __init__(self, **kwargs):
         # Every start-up value is declared, so LiveParameters sees (and refuses) unknown names.
         super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True,
                          **kwargs)
         try:  # raises for start-up values that cannot work (names, ranges, weights, device)
-            self._configure()
+            self.configure()
         except Exception:
             super().destroy_node()
             raise
-        self._activate()
+        self.activate()
 
-    def _configure(self):
-        """Declare and check the parameters, build the pipeline and load its CNN (configure)."""
+    def configure(self):
+        """Declare and check the parameters, build the pipeline and load its CNN; may raise."""
         self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
         self.errors = 0
         self.last_error = ''
-        self._cancel = None  # no worker yet
-        self.stopped = True  # (no worker thread runs)
         self.params = LiveParameters(self, check=self._check, on_change=self._on_params)
         self.pipeline, self._checked = self._checked, None
         self._warn_config()
 
-    def _activate(self):
-        """Start the worker, subscribe and publish (a lifecycle node's activate)."""
+    def activate(self):
+        """Start the worker, subscribe and publish."""
         self._cancel = CancelFlag()
         self.stopped = False  # set by destroy_node: the worker thread has ended
         self._worker = NewestWorker(self._process, 'gcp_stereo_worker',
@@ -106,8 +113,24 @@ class GcpStereoNode(Node):
         self.processed = 0
         self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
         self.diagnostics = Diagnostics(self)
+        self.active = True
         config = self.pipeline.config
         self.get_logger().info(f'ready: {config}; CNN descriptors: {cnn_precision(config)}')
+
+    def deactivate(self):
+        """Stop the frame in progress and the worker, unsubscribe and unpublish."""
+        self._stop()
+        self.input.close()
+        for pub in self._pubs.values():
+            self.destroy_publisher(pub)
+        self.diagnostics.close()
+        self._cancel = None
+        self.active = False
+
+    def cleanup(self):
+        """Stop serving parameter requests; let the pipeline, its CNN and its arrays go."""
+        self.params.close()
+        self.params = self.pipeline = self._checked = None
 
     @property
     def stale(self):
@@ -147,6 +170,8 @@ class GcpStereoNode(Node):
             self.pipeline = pipeline
         self._warn_config()
         values = self.params.values
+        if not self.active:  # activate subscribes as the values say
+            return
         if any(n in INPUT_PARAMS for n in names):
             self.input.subscribe(values)
         elif any(n in SYNC_PARAMS for n in names):

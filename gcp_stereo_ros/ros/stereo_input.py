@@ -126,6 +126,12 @@ class StereoInput:
                 self.infos.add(side, stamp_ns(msg.header), msg)
         self._release(force=True)
 
+    def close(self):
+        """Unsubscribe every topic and destroy the guard condition `wake` triggers."""
+        for sub in (*self._info_subs, *self.subs.values()):
+            self._node.destroy_subscription(sub)
+        self._node.destroy_guard_condition(self._wake)
+
     def wake(self):
         """Have the executor look at the image subscriptions again (any thread)."""
         self._wake.trigger()
