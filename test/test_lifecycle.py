@@ -38,14 +38,22 @@ def graph(ros):
         peer.destroy_node()
 
 
+def entities(node):
+    """Return the node's publishers, subscriptions, timers and guard conditions, by kind."""
+    return {kind: set(getattr(node, kind))
+            for kind in ('publishers', 'subscriptions', 'timers', 'guards')}
+
+
 def test_transitions(graph):
     left, right, _ = data.stereo_motorcycle()
     pair = [cv2.resize(im, (247, 167), interpolation=cv2.INTER_AREA) for im in (left, right)]
     node, peer = graph(max_disparity=32)
-    assert node.params is None and not node.has_parameter('census.theta')  # no CNN yet
+    assert node.params is None and node.pipeline is None  # no CNN yet
+    assert not node.has_parameter('census.theta')
     assert node.trigger_configure() == SUCCESS
-    assert node.params.pipeline.net is not None and node.has_parameter('census.theta')
+    assert node.pipeline.net is not None and node.has_parameter('census.theta')
     assert not peer.get_publishers_info_by_topic('/disparity')  # nothing published yet
+    configured = entities(node)
     disparity = []
     peer.create_subscription(DisparityImage, 'disparity', disparity.append, 10)
     pubs = {side: peer.create_publisher(Image, f'{side}/image_rect', qos_profile_sensor_data)
@@ -60,25 +68,33 @@ def test_transitions(graph):
         wait_for(lambda: disparity and disparity[-1].header.stamp.sec == cycle + 1, 'disparity')
         assert node.trigger_deactivate() == SUCCESS
         assert node.stopped  # the worker thread has ended
+        assert entities(node) == configured  # all that activate made is destroyed
         wait_for(lambda: not any(p.get_subscription_count() for p in pubs.values())
                  and not peer.get_publishers_info_by_topic('/disparity'), 'unsubscribed')
-    net = weakref.ref(node.params.pipeline.net)
-    assert node.trigger_cleanup() == SUCCESS and node.params is None
+    # set while inactive: taken, and subscribed by the next activate only
+    assert node.set_parameters([Parameter('image_transport', value='compressed')])[0].successful
+    assert entities(node) == configured
+    net = weakref.ref(node.pipeline.net)
+    assert node.trigger_cleanup() == SUCCESS and node.params is None and node.pipeline is None
     assert net() is None  # the CNN is gone, not waiting for a garbage collection
     assert node.trigger_configure() == SUCCESS  # and again, with the declared values
     assert node.get_parameter('max_disparity').value == 32
     assert node.trigger_activate() == SUCCESS
+    assert node.input.topics() == {side: f'/{side}/image_rect/compressed'
+                                   for side in ('left', 'right')}
     start = time.monotonic()
     assert node.trigger_shutdown() == SUCCESS
-    assert time.monotonic() - start < 2.0 and node.stopped and node.params is None
+    assert time.monotonic() - start < 2.0 and node.stopped
+    assert node.params is None and node.pipeline is None and not node.active
 
 
 def test_configure_fails_with_the_reason(graph):
     node, _ = graph(weights='/no/such/weights.pt')
-    assert node.trigger_configure() == FAILURE and node.params is None  # still unconfigured
+    assert node.trigger_configure() == FAILURE  # still unconfigured
+    assert node.params is None and node.pipeline is None
     assert node.set_parameters([Parameter('weights', value='')])[0].successful
     assert node.trigger_configure() == SUCCESS  # once fixed, it configures
-    assert node.params.pipeline.config.weights == ''
+    assert node.pipeline.config.weights == ''
 
 
 def test_a_destroyed_node_is_gone_and_leaves_the_logs_of_its_name(ros):

@@ -122,7 +122,7 @@ def test_set_parameters_live(harness, pair):
     assert harness.node.get_parameter('census.theta').value == 0.6
     for bf16, field in ((True, True), ('auto', 'auto'), ('true', True), (False, False)):
         assert all(r.successful for r in harness.set_params({'bf16': bf16}))
-        assert harness.node.params.pipeline.config.bf16 == field
+        assert harness.node.pipeline.config.bf16 == field
         param = harness.node.get_parameter('bf16')  # one type, whatever was sent
         assert (param.type_, param.value) == (Parameter.Type.STRING, str(bf16).lower())
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
@@ -151,13 +151,13 @@ def test_set_parameters_live(harness, pair):
 
     # Values that cross (as `ros2 param load` sets P1 before P2) are taken and wait.
     assert all(r.successful for r in harness.set_params({'sad.P1': 30.0}))
-    assert harness.node.params.pipeline.config.p1 == 0.02  # the last consistent values
+    assert harness.node.pipeline.config.p1 == 0.02  # the last consistent values
     assert harness.node.params.pending == ['sad: P2 (20.0) must be >= P1 (30.0)']
     assert any('waiting for that, the node keeps its last consistent values' in m
                for m in harness.error_logs('WARN'))
     assert harness.node.get_parameter('sad.P1').value == 30.0
     assert all(r.successful for r in harness.set_params({'sad.P2': 40.0}))
-    config = harness.node.params.pipeline.config
+    config = harness.node.pipeline.config
     assert (config.p1, config.p2, harness.node.params.pending) == (30.0, 40.0, [])
 
 

@@ -5,9 +5,9 @@ import cv2
 from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.ros.camera import stereo_model
 from gcp_stereo_ros.ros.graph import Spinner
-from gcp_stereo_ros.ros.node import ros_data, RosTypes
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.point_cloud_node import PointCloudNode
+from gcp_stereo_ros.ros.rclpy_messages import ros_data, RosTypes
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest

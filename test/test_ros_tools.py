@@ -146,7 +146,7 @@ def test_dump_then_load_restores_exactly_what_was_dumped(graph, tmp_path):
                           for n in failed), failed
     after = yaml.safe_load(g.dump(tmp_path / 'again.yaml').read_text())
     assert after['/stereo/gcp_stereo_node']['ros__parameters'] == before
-    config = g.node.params.pipeline.config
+    config = g.node.pipeline.config
     assert not g.node.params.pending
     assert (config.cost, config.p1, config.p2, config.theta, config.window, config.paths) == (
         'sad', 2.0, 30.0, 0.7, 7, 8)
@@ -171,7 +171,7 @@ def test_bag_run_takes_a_dump_file(graph, tmp_path):
     assert disp.min_disparity == low and disp.f > 0
     np.testing.assert_array_equal(image_to_array(disp.image),
                                   np.where(np.isnan(want), low - 1, want + low))
-    assert g.node.params.pipeline.config.p2 == 20.0
+    assert g.node.pipeline.config.p2 == 20.0
 
 
 def test_whole_numbers_for_decimal_parameters(graph, tmp_path):
@@ -185,7 +185,7 @@ def test_whole_numbers_for_decimal_parameters(graph, tmp_path):
     assert g.types('census.P2') == [ParameterType.PARAMETER_DOUBLE]
     params.write_text('/**:\n  ros__parameters:\n    census:\n      P1: 4\n')
     assert all(r.successful for r in g.load(params))  # `ros2 param load` too
-    assert g.node.params.pipeline.config.p1 == 4.0
+    assert g.node.pipeline.config.p1 == 4.0
     refused = g.set_text('census.P2', 'many')
     assert not refused.successful and 'type' in refused.reason
 

@@ -1,15 +1,14 @@
 """StampSync: exact and approximate matching by stamp, drops, the unmatched streak; CameraInfos."""
 import math
 
-from gcp_stereo_ros.ros.params import make_sync
-from gcp_stereo_ros.ros.sync import CameraInfos, SIDES, StampSync, tolerance_ns
+from gcp_stereo_ros.ros.sync import CameraInfos, image_sync, SIDES, StampSync, tolerance_ns
 import pytest
 
 MS = 1_000_000  # nanoseconds
 
 
 def pair_sync(queue_size=10, approximate=False, tolerance=0.0, max_bytes=None):
-    """Return the node's sync of left and right images, as make_sync builds it."""
+    """Return the node's sync of left and right images, as image_sync builds it."""
     return StampSync(SIDES, queue_size, tolerance_ns(approximate, tolerance), max_bytes)
 
 
@@ -234,7 +233,7 @@ def test_three_topics_go_back_in_time_together():
 
 def test_approximate_sync_without_a_tolerance_pairs_the_closest_stamps():
     """As stereo_image_proc: approximate_sync with tolerance 0 is ApproximateTime."""
-    sync = make_sync({'approximate_sync': True})
+    sync = image_sync({'approximate_sync': True})
     assert sync.tolerance_ns == math.inf
     got = []
     for k in range(8):  # 30 Hz, the right camera 7 ms late; left frame 2, right frame 5 lost
@@ -247,8 +246,8 @@ def test_approximate_sync_without_a_tolerance_pairs_the_closest_stamps():
     assert got == [(33, 40), (99, 106), (132, 139), (198, 205), (231, 238)]
     assert sync.dropped == {'left': 2, 'right': 2}  # L0, R7 (no period yet); L165, R73
     assert sync.flush() is None
-    assert make_sync({'approximate_sync': False}).tolerance_ns == 0
-    assert make_sync({'approximate_sync': True,
+    assert image_sync({'approximate_sync': False}).tolerance_ns == 0
+    assert image_sync({'approximate_sync': True,
                       'approximate_sync_tolerance_seconds': 0.01}).tolerance_ns == 10 * MS
     # the camera_info of an image: its own stamp, as the driver gives them
     assert CameraInfos(sync.tolerance_ns).tolerance_ns == 0
@@ -256,35 +255,35 @@ def test_approximate_sync_without_a_tolerance_pairs_the_closest_stamps():
 
 def test_closest_stamps_skipped_images_and_one_frame():
     """A node that keeps only the newest image: the period per image its publisher sent."""
-    sync = make_sync({'approximate_sync': True})
+    sync = image_sync({'approximate_sync': True})
     assert sync.add('left', 0, 0) is None and sync.add('right', 7 * MS, 0) is None
     # 30 frames later, the right image before the newest left one: a frame apart, no pair
     assert sync.add('right', (33 * 30 + 7) * MS, 30, sent=30) is None
     assert sync.add('left', 33 * 31 * MS, 31, sent=31) is None
     assert sync.add('right', (33 * 31 + 7) * MS, 31) == {'left': 31, 'right': 31}
     # no sequence numbers (sent None): no period, identical stamps only
-    blind = make_sync({'approximate_sync': True})
+    blind = image_sync({'approximate_sync': True})
     for k in range(3):
         blind.add('left', 33 * k * MS, k, sent=None)
         assert blind.add('right', (33 * k + 7) * MS, k, sent=None) is None
     # a copy 1 ns later counted as two images: the median of the gaps gets over it
-    copy = make_sync({'approximate_sync': True})
+    copy = image_sync({'approximate_sync': True})
     got = []
     for k, stamp in enumerate([0, 1, 33, 66, 99]):
         copy.add('left', stamp * MS + (k == 1), stamp, sent=2 if k == 1 else 1)
         pair = copy.add('right', (stamp + 7) * MS, stamp)
         got.append(pair and pair['left'])
     assert got == [None, None, None, 66, 99]
-    one = make_sync({'approximate_sync': True})  # a recording of one frame
+    one = image_sync({'approximate_sync': True})  # a recording of one frame
     assert one.add('left', 0, 'L') is None and one.add('right', 7 * MS, 'R') is None
     assert one.flush() == {'left': 'L', 'right': 'R'} and one.flush() is None
-    assert make_sync({}).flush() is None
+    assert image_sync({}).flush() is None
 
 
 @pytest.mark.parametrize('lost', ['left', 'right'])
 def test_closest_stamps_recover_from_a_lost_image(lost):
     """Identical stamps, left first: after a lost image the pairs are again of one frame."""
-    sync = make_sync({'approximate_sync': True})
+    sync = image_sync({'approximate_sync': True})
     got = []
     for k in range(6):
         for side in SIDES:
@@ -297,7 +296,7 @@ def test_closest_stamps_recover_from_a_lost_image(lost):
 
 
 def test_node_queues_hold_a_quarter_of_the_memory_limit():
-    assert make_sync({'queue_size': 1000, 'memory_limit_mb': 3072}).max_bytes == 768 << 20
+    assert image_sync({'queue_size': 1000, 'memory_limit_mb': 3072}).max_bytes == 768 << 20
 
 
 def test_camera_infos_pair_each_image_with_its_own_stamp():

@@ -13,15 +13,9 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 
+from .cnn_setup import cnn_precision
+
 NO_PAIR_SECONDS = 5.0  # images arriving this long without a pair -> WARN
-
-
-def cnn_precision(config):
-    """Say how a StereoConfig runs the CNN: 'bfloat16', 'float32' or 'not used'."""
-    if not config.use_gcp:
-        return 'not used'
-    from ..stereo.cnn import resolve_bf16  # torch is loaded already when GCPs are used
-    return 'bfloat16' if resolve_bf16(config.bf16, config.device) else 'float32'
 
 
 class Diagnostics:
@@ -45,7 +39,13 @@ class Diagnostics:
         self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 1)
         self._started = time.monotonic()
         self._samples = deque()  # (time, images left, images right, processed, errors)
-        node.create_timer(1.0, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._timer = node.create_timer(1.0, self.publish,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def close(self):
+        """Stop publishing: destroy the publisher and the timer."""
+        self._node.destroy_timer(self._timer)
+        self._node.destroy_publisher(self._pub)
 
     def publish(self):
         node = self._node
@@ -68,7 +68,7 @@ class Diagnostics:
         rates = [(sample[i] - first[i]) / seconds for i in (5, 6)]
         rates.append((sample[3] - last[3]) / max(now - last[0], 1e-9))
         latency = node.take_latencies()
-        config = node.params.pipeline.config
+        config = node.pipeline.config
         sync = inp.sync
         values = {
             'left images/s': f'{rates[0]:.1f}', 'right images/s': f'{rates[1]:.1f}',

@@ -14,12 +14,9 @@ with `lifecycle:=true`.
 """
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
-from .node import GcpStereoNode, main as node_main
+from .node import GcpStereoNode
 from .params import NODE_NAME
-
-# what activate creates, as Node lists them: the Node method that destroys one
-DESTROY = {'publishers': 'destroy_publisher', 'subscriptions': 'destroy_subscription',
-           'timers': 'destroy_timer', 'guards': 'destroy_guard_condition'}
+from .process import run_node
 
 
 class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
@@ -27,49 +24,34 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
     def __init__(self, **kwargs):
         LifecycleNode.__init__(self, NODE_NAME,
                                automatically_declare_parameters_from_overrides=True, **kwargs)
-        self.params = None
-        self._cancel = None
-        self.stopped = True
-        self._started = set()  # what activate created: (kind, entity)
 
     def on_configure(self, state):
         try:
-            self._configure()
+            self.configure()
         except Exception as err:  # a value that cannot work: say why, stay unconfigured
-            self.params = None
             self.get_logger().error(f'cannot configure: {" ".join(str(err).split())}')
             return TransitionCallbackReturn.FAILURE
-        self.get_logger().info(f'configured: {self.params.pipeline.config}')
+        self.get_logger().info(f'configured: {self.pipeline.config}')
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state):
-        before = self._entities()
-        self._activate()
-        self._started = self._entities() - before
+        self.activate()
         return super().on_activate(state)
 
     def on_deactivate(self, state):
-        self._stop()
-        for kind, entity in self._started:
-            getattr(self, DESTROY[kind])(entity)
-        self._started = set()
-        self._cancel = None
+        self.deactivate()
         return super().on_deactivate(state)
 
     def on_cleanup(self, state):
-        self.params.close()
-        self.params = None  # the last reference to the pipeline, its CNN and its arrays
+        self.cleanup()
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state):
-        if self._started:
+        if self.active:
             self.on_deactivate(state)
         if self.params is not None:
             self.on_cleanup(state)
         return TransitionCallbackReturn.SUCCESS
-
-    def _entities(self):
-        return {(kind, entity) for kind in DESTROY for entity in getattr(self, kind)}
 
     def destroy_node(self):
         """
@@ -86,4 +68,4 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
 
 
 def main(args=None):
-    return node_main(args, GcpStereoLifecycleNode, __doc__, 'gcp_stereo_lifecycle_node')
+    return run_node(GcpStereoLifecycleNode, __doc__, 'gcp_stereo_lifecycle_node', args)

@@ -3,9 +3,8 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
 
-from .params import (BY_NAME, check_names, coerce, config_from_params, config_warnings,
-                     inconsistencies, make_sync, PARAMS, RCLPY_PARAMS, uncrossed)
-from ..stereo.pipeline import StereoPipeline
+from .params import (BY_NAME, check_names, coerce, config_from_params, inconsistencies,
+                     PARAMS, RCLPY_PARAMS, uncrossed)
 
 
 def descriptor(param):
@@ -41,23 +40,25 @@ def _declare(node, param):
 
 class LiveParameters:
     """
-    Declare the node's parameters and keep `values` and `pipeline` in step with them.
+    Declare the node's parameters and keep `values` in step with them.
 
-    A start-up value for a name the node does not have, and start-up values the pipeline
-    cannot be built with (a missing weights file, an absent GPU), are refused (ValueError).
-    A request is validated whole, by building the pipeline it asks for (a missing weights
-    file is refused here, with its path), and refused with the reason if any value is
-    invalid. A theta above the CNN's highest confidence is warned about, at start-up and
-    when set. A whole number set for a decimal parameter is taken as that decimal, a boolean
-    for bf16 as 'true' or 'false' (bf16 stays a string). No
-    parameter changes another. Values that cross within a cost (P1 > P2, c_low > c_hi), as when
-    `ros2 param load` sets P1 before P2, are accepted and wait, with a warning: the pipeline
-    keeps the last consistent values (`pending` says why) until a later value uncrosses
-    them. `on_change(names)` is called with the names whose values changed.
+    `check(config)` is given the StereoConfig that the start-up values, then the values of
+    each request, ask for, and raises for one the node cannot work with (a missing weights
+    file, an absent GPU), its text the reason. A start-up value for a name the node does
+    not have, or that is invalid, or refused by `check`, is refused (ValueError). A request
+    is validated whole, each value on its own, then by `check`, and refused with the reason
+    if any value is invalid. A whole number set for a decimal parameter is taken as that
+    decimal, a boolean for bf16 as 'true' or 'false' (bf16 stays a string). No parameter
+    changes another. Values that cross within a cost (P1 > P2, c_low > c_hi), as when
+    `ros2 param load` sets P1 before P2, are accepted and wait (`check` sees them with the
+    high value raised to the low one): `pending` says why until a later value uncrosses
+    them. Once a request is taken, `on_change(names)` is called with the names whose values
+    changed (none where each was set to what it was).
     """
 
-    def __init__(self, node, on_change):
+    def __init__(self, node, check, on_change):
         self._node = node
+        self._check = check
         self._on_change = on_change
         for name in node.list_parameters([], 0).names:  # declared read-only with their topic
             if name.startswith('qos_overrides.') and not node.describe_parameter(name).read_only:
@@ -67,10 +68,7 @@ class LiveParameters:
         check_names(n for n in node.list_parameters([], 0).names  # a misspelled start-up name
                     if n not in RCLPY_PARAMS and not n.startswith('qos_overrides.'))
         self.values = {p.name: node.get_parameter(p.name).value for p in PARAMS}
-        self.pipeline = StereoPipeline(config_from_params(self.values))
-        if self.pipeline.config.use_gcp:
-            self.pipeline.net  # a missing or broken weights file stops the start here
-        self._warn()
+        check(config_from_params(self.values))  # start-up values that cannot work stop here
         self.pending = []
         self._candidate = None
         node.add_pre_set_parameters_callback(self._as_declared)
@@ -78,12 +76,11 @@ class LiveParameters:
         node.add_post_set_parameters_callback(self._apply)
 
     def close(self):
-        """Stop taking part in parameter requests and let the pipeline's memory go."""
+        """Stop taking part in parameter requests."""
         node = self._node
         node.remove_pre_set_parameters_callback(self._as_declared)
         node.remove_on_set_parameters_callback(self._validate)
         node.remove_post_set_parameters_callback(self._apply)
-        self.pipeline = None
 
     @staticmethod
     def _as_declared(params):
@@ -105,33 +102,18 @@ class LiveParameters:
             return SetParametersResult(successful=True)
         values = {**self.values, **changes}
         try:
-            config = config_from_params(uncrossed(values))  # every value valid on its own
-            make_sync(values)
-            pipeline = self.pipeline.with_config(config)
-            if config.use_gcp:
-                pipeline.net
+            self._check(config_from_params(uncrossed(values)))  # every value valid on its own
         except Exception as err:  # any invalid value is refused with its reason
             return SetParametersResult(successful=False, reason=str(err))
-        pending = inconsistencies(values)
-        self._candidate = (values, self.pipeline if pending else pipeline, pending)
+        self._candidate = values
         return SetParametersResult(successful=True)  # rclpy drops a reason given with success
 
     def _apply(self, params):
         if self._candidate is None:
             return
-        values, self.pipeline, self.pending = self._candidate
+        values = self._candidate
         changed = [n for n in values if values[n] != self.values[n]]
-        self.values = values
-        if changed:
-            self._on_change(changed)
-        logger = self._node.get_logger()
-        logger.info('parameters: ' + ', '.join(
+        self.values, self.pending = values, inconsistencies(values)
+        self._node.get_logger().info('parameters: ' + ', '.join(
             f'{p.name}={p.value!r}' for p in params if p.name in BY_NAME))
-        if self.pending:
-            logger.warn('; '.join(self.pending) + ': waiting for that, the node keeps its last '
-                        f'consistent values: {self.pipeline.config}')
-        self._warn()
-
-    def _warn(self):
-        for text in config_warnings(self.pipeline):
-            self._node.get_logger().warn(text)
+        self._on_change(changed)

@@ -10,7 +10,8 @@ rclpy, the numpy array itself for rosbags).
 import cv2
 import numpy as np
 
-from .rosimage import array_to_image_fields
+from .pointcloud import geometry_messages
+from .rosimage import image_message
 from ..stereo.images import mask_image
 from ..stereo.postprocess import valid_window
 
@@ -23,12 +24,8 @@ def stamp_ns(header):
     return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
 
 
-def _same(array):
-    return array
-
-
 def output_messages(types, header, wanted, result, config, model, left, use_color=True,
-                    padded=True, data=_same):
+                    padded=True, data=np.asarray):
     """
     Return {name: message} of the outputs in `wanted` (names of OUTPUTS) for one pair.
 
@@ -55,7 +52,6 @@ def output_messages(types, header, wanted, result, config, model, left, use_colo
         out['disparity_color'] = image_message(
             types, header, color_map(result.disparity, config.max_disp), 'bgr8', data)
     if model is not None and wanted & {'depth', 'points2'}:
-        from .pointcloud import geometry_messages  # which builds on image_message
         out.update(geometry_messages(types, header, wanted, result.disparity, model,
                                      left if use_color else None, padded, data))
     return out
@@ -74,7 +70,7 @@ def color_map(disp, max_disp):
     return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
-def disparity_message(types, header, disp, config, model=None, data=_same):
+def disparity_message(types, header, disp, config, model=None, data=np.asarray):
     """
     Return a stereo_msgs/DisparityImage for a float32 disparity x_left - x_right.
 
@@ -101,10 +97,3 @@ def disparity_message(types, header, disp, config, model=None, data=_same):
         t=float(model.baseline) if model is not None else 0.0,
         valid_window=roi, min_disparity=float(low), max_disparity=float(high),
         delta_d=config.downsample / 16 if config.subpixel else float(config.downsample))
-
-
-def image_message(types, header, array, encoding, data=_same):
-    """Return a sensor_msgs/Image of a mono8 or 32FC1 array."""
-    fields = array_to_image_fields(array, encoding)
-    fields['data'] = data(fields['data'])
-    return types.Image(header=header, **fields)

@@ -17,42 +17,38 @@ Parameters (config/gcp_stereo.yaml) are live.
 Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
 `python -m gcp_stereo_ros.node`, each with the usual `--ros-args`.
 
-The node is three parts: `LiveParameters` (declare, validate, apply), `StereoInput`
-(subscriptions and pairing) and a `NewestWorker` thread that processes the newest pair
-and publishes here, so parameter requests are served while a frame is being processed.
+The node holds the `StereoPipeline` of its parameters and three parts: `LiveParameters`
+(declare, validate, apply), `StereoInput` (subscriptions and pairing) and a `NewestWorker`
+thread that processes the newest pair and publishes here, so parameter requests are
+served while a frame is being processed.
 
 Start-up settings that cannot work (invalid values, unknown names, a missing weights file,
 `device: cuda` without a GPU, an unreadable params file) end the process with one line and
 exit code 2. Ctrl-C or SIGTERM stops a frame in progress between two rows of a kernel or
 two CNN layers, so the process exits promptly.
 """
-import array
-import gc
 import math
-import os
-import signal
-import sys
 import time
 import traceback
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from rclpy.utilities import remove_ros_args
-from sensor_msgs.msg import Image, PointCloud2, PointField, RegionOfInterest
+from sensor_msgs.msg import Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from .camera import camera_model, depth_scale, Rectifier
-from .diagnostics import cnn_precision, Diagnostics
+from .cnn_setup import cnn_precision, config_warnings, load_cnn
+from .diagnostics import Diagnostics
 from .live_params import LiveParameters
 from .messages import output_messages, OUTPUTS
-from .params import check_params_files, INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
+from .params import INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
+from .process import run_node
+from .rclpy_messages import ros_data, RosTypes
 from .rosimage import message_to_array
 from .stereo_input import StereoInput
 from .worker import NewestWorker
 from ..stereo.cancel import CancelFlag, Cancelled
-from ..stereo.memory import mmap_large_arrays
+from ..stereo.pipeline import StereoPipeline
 
 LOG_PERIOD = 5.0  # seconds between two logs of the same text
 STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
@@ -60,53 +56,47 @@ STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
 ON_DEMAND = ('confidence', 'disparity_confidence', 'depth', 'points2', 'disparity_color')
 
 
-class RosTypes:
-    """The message classes `messages` builds with: rclpy's."""
-
-    Image = Image
-    RegionOfInterest = RegionOfInterest
-    DisparityImage = DisparityImage
-    PointCloud2 = PointCloud2
-    PointField = PointField
-
-
-def ros_data(buffer):
-    """Wrap uint8 numpy data as array.array('B'), the one form rclpy takes unchecked."""
-    out = array.array('B')
-    out.frombytes(buffer)
-    return out
-
-
 class GcpStereoNode(Node):
+    """
+    The node: configured (parameters, pipeline), then active (worker, topics) when made.
+
+    Its steps are a lifecycle node's: `configure`, `activate`, `deactivate`, `cleanup`.
+    """
+
+    params = None  # LiveParameters, while configured
+    pipeline = None  # the StereoPipeline of the parameters, while configured
+    active = False  # the worker started, the topics subscribed and published
+    stopped = True  # no worker thread runs
+    _cancel = None  # the worker's CancelFlag, while active
 
     def __init__(self, **kwargs):
         # Every start-up value is declared, so LiveParameters sees (and refuses) unknown names.
         super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True,
                          **kwargs)
         try:  # raises for start-up values that cannot work (names, ranges, weights, device)
-            self._configure()
+            self.configure()
         except Exception:
             super().destroy_node()
             raise
-        self._activate()
+        self.activate()
 
-    def _configure(self):
-        """Declare and check the parameters and load the CNN (a lifecycle node's configure)."""
+    def configure(self):
+        """Declare and check the parameters, build the pipeline and load its CNN; may raise."""
         self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
         self.errors = 0
         self.last_error = ''
-        self._cancel = None  # no worker yet
-        self.stopped = True  # (no worker thread runs)
-        self.params = LiveParameters(self, on_change=self._on_params)
+        self.params = LiveParameters(self, check=self._check, on_change=self._on_params)
+        self.pipeline, self._checked = self._checked, None
+        self._warn_config()
 
-    def _activate(self):
-        """Start the worker, subscribe and publish (a lifecycle node's activate)."""
+    def activate(self):
+        """Start the worker, subscribe and publish."""
         self._cancel = CancelFlag()
         self.stopped = False  # set by destroy_node: the worker thread has ended
         self._worker = NewestWorker(self._process, 'gcp_stereo_worker',
                                     on_error=self._on_worker_error,
                                     on_idle=lambda: self.input.wake(),
-                                    on_quiet=lambda: self.params.pipeline.release())
+                                    on_quiet=lambda: self.pipeline.release())
         self.input = StereoInput(self, self.params.values, on_pair=self._on_pair,
                                  idle=lambda: self._worker.idle, log=self._log)
         # As image_pipeline's publishers on Jazzy: reliable, depth 1, QoS overridable.
@@ -123,8 +113,24 @@ class GcpStereoNode(Node):
         self.processed = 0
         self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
         self.diagnostics = Diagnostics(self)
-        config = self.params.pipeline.config
+        self.active = True
+        config = self.pipeline.config
         self.get_logger().info(f'ready: {config}; CNN descriptors: {cnn_precision(config)}')
+
+    def deactivate(self):
+        """Stop the frame in progress and the worker, unsubscribe and unpublish."""
+        self._stop()
+        self.input.close()
+        for pub in self._pubs.values():
+            self.destroy_publisher(pub)
+        self.diagnostics.close()
+        self._cancel = None
+        self.active = False
+
+    def cleanup(self):
+        """Stop serving parameter requests; let the pipeline, its CNN and its arrays go."""
+        self.params.close()
+        self.params = self.pipeline = self._checked = None
 
     @property
     def stale(self):
@@ -142,12 +148,38 @@ class GcpStereoNode(Node):
         latency, self._latency = self._latency, []
         return latency
 
+    def _check(self, config):
+        """
+        Build the pipeline of `config` as `_checked`, its CNN loaded; raise if it cannot work.
+
+        LiveParameters' check, of the start-up values and of each request; the pipeline
+        built for a request keeps the current one's CNN and arrays where it can.
+        """
+        pipeline = (StereoPipeline(config) if self.pipeline is None
+                    else self.pipeline.with_config(config))
+        self._checked = load_cnn(pipeline)
+
     def _on_params(self, names):
+        """Take the parameters of a request: its pipeline, unless values wait; its topics."""
+        pipeline, self._checked = self._checked, None
+        if self.params.pending:
+            self.get_logger().warn('; '.join(self.params.pending) + ': waiting for that, the '
+                                   'node keeps its last consistent values: '
+                                   f'{self.pipeline.config}')
+        else:
+            self.pipeline = pipeline
+        self._warn_config()
         values = self.params.values
+        if not self.active:  # activate subscribes as the values say
+            return
         if any(n in INPUT_PARAMS for n in names):
             self.input.subscribe(values)
         elif any(n in SYNC_PARAMS for n in names):
             self.input.reset_sync(values)
+
+    def _warn_config(self):
+        for text in config_warnings(self.pipeline):
+            self.get_logger().warn(text)
 
     def _on_pair(self, stamp, left_msg, right_msg, info):
         self._worker.put((stamp, left_msg, right_msg, info))
@@ -179,7 +211,7 @@ class GcpStereoNode(Node):
             self.get_logger().warn(text)
 
     def _process(self, stamp, left_msg, right_msg, info):
-        pipeline = self.params.pipeline
+        pipeline = self.pipeline
         values = self.params.values
         topics = self.input.topics()
         try:
@@ -263,65 +295,5 @@ class GcpStereoNode(Node):
         return super().destroy_node()
 
 
-def _cannot_start(err, prog=NODE_NAME):
-    """Print why the node cannot start, in one line; return the exit status."""
-    print(f'{prog}: error: cannot start: ' + (' '.join(str(err).split()) or repr(err)),
-          file=sys.stderr)
-    return 2
-
-
-def _stop_once(signum, frame):
-    """
-    Stop on the first SIGINT or SIGTERM (KeyboardInterrupt) and ignore every later one.
-
-    Installed before rclpy.init, whose own handlers (which wake the executor) call it after
-    theirs. `ros2 launch` forwards the terminal's Ctrl-C, so the node gets two at once; a
-    second KeyboardInterrupt while stopping would abort the exit (with the worker thread
-    alive, the interpreter then dies in `terminate`).
-    """
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_IGN)
-    raise KeyboardInterrupt
-
-
-def main(args=None, node_class=GcpStereoNode, doc=__doc__, prog=NODE_NAME):
-    """Run `node_class` (this node, or one of the package's others, with its `doc`, `prog`)."""
-    argv = sys.argv if args is None else args
-    try:
-        check_params_files(argv)  # rcl would say it with a traceback
-        extra = remove_ros_args(argv)[1:]
-    except Exception as err:  # rcl's own argument errors
-        return _cannot_start(err, prog)
-    if extra and extra[0] in ('-h', '--help'):
-        print(doc.strip())
-        return 0
-    if extra:  # ROS arguments go after --ros-args; anything else is a mistake
-        print(f'{prog}: error: unrecognized arguments: {" ".join(extra)} '
-              '(parameters go after --ros-args, e.g. --ros-args -p NAME:=VALUE)',
-              file=sys.stderr)
-        return 2
-    node = None
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, _stop_once)
-    try:
-        try:
-            mmap_large_arrays()
-            rclpy.init(args=argv)
-            node = node_class()
-        except Exception as err:  # settings that cannot work: one line, no traceback
-            return _cannot_start(err, prog)
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass  # Ctrl-C or shutdown, while starting or spinning
-    finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):  # stopping for another reason: the same
-            signal.signal(sig, signal.SIG_IGN)
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    if node is not None and not node.stopped:  # the interpreter's exit would abort on it
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)
-    gc.freeze()  # else the interpreter's exit spends about 0.7 s of CPU collecting objects
-    return 0
+def main(args=None):
+    return run_node(GcpStereoNode, __doc__, NODE_NAME, args)

@@ -13,13 +13,10 @@ from dataclasses import dataclass
 import difflib
 from pathlib import Path
 
-import numpy as np
 import yaml
 
-from .sync import SIDES, StampSync, tolerance_ns
 from ..stereo.config import CHOICES, COST_DEFAULTS, range_text, RANGES, StereoConfig
 from ..stereo.cost import COSTS, WINDOWS
-from ..stereo.memory import MIB
 
 NODE_NAME = 'gcp_stereo_node'
 # Parameters every rclpy node declares (a dump holds them); the bag tools leave them out.
@@ -179,7 +176,6 @@ BY_NAME = {p.name: p for p in PARAMS}
 ORDERED = (('P1', 'P2'), ('c_low', 'c_hi'))  # (low, high): low <= high within each cost
 SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds',
                'memory_limit_mb')
-QUEUE_SHARE = 4  # each sync queue holds at most memory_limit_mb / QUEUE_SHARE
 INPUT_PARAMS = ('image_transport', 'rectify')
 
 
@@ -288,29 +284,6 @@ def inconsistencies(values):
 def uncrossed(values):
     """Return `values` with each crossed pair's high value raised to the low one."""
     return {**values, **{f'{cost}.{high}': a for cost, _, high, a, _ in _crossed(values)}}
-
-
-def make_sync(values):
-    """Build the images' StampSync the ROS-named parameter values ask for (defaults if missing)."""
-    queue_size, approximate, tolerance, memory_limit_mb = (
-        values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS)
-    return StampSync(SIDES, queue_size, tolerance_ns(approximate, tolerance),
-                     memory_limit_mb * MIB // QUEUE_SHARE)
-
-
-def config_warnings(pipeline):
-    """Return what is wrong with a valid pipeline's config as used on a stream, as sentences."""
-    config = pipeline.config
-    if config.use_gcp:
-        from ..stereo.cnn import calibrated  # torch is loaded with the CNN anyway
-        top = float(calibrated(pipeline.net, np.ones(1, np.float32),
-                               config.matched_radius)[0])
-        if config.theta >= top:
-            return [f'theta {config.theta:g} selects no GCP: the CNN confidence is at most '
-                    f'{top:.3g} with these weights, so every pixel gets c_hi at every '
-                    'disparity and the disparity is 0 everywhere; lower theta or set use_gcp '
-                    'false']
-    return []
 
 
 def read_yaml(path):

@@ -26,8 +26,9 @@ from stereo_msgs.msg import DisparityImage
 
 from .camera import stereo_model
 from .messages import stamp_ns
-from .node import main as node_main, ros_data, RosTypes
 from .pointcloud import disparity_of, geometry_messages
+from .process import run_node
+from .rclpy_messages import ros_data, RosTypes
 from .rosimage import message_to_array
 from .sync import StampSync, tolerance_ns
 
@@ -106,4 +107,4 @@ class PointCloudNode(Node):
 
 
 def main(args=None):
-    return node_main(args, PointCloudNode, __doc__, NAME)
+    return run_node(PointCloudNode, __doc__, NAME, args)

@@ -7,7 +7,7 @@ stereo_msgs/DisparityImage, as stereo_image_proc's point_cloud_node takes it). `
 """
 import numpy as np
 
-from .messages import image_message
+from .rosimage import image_message
 
 FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
 _FLOATS = {'32FC1': np.dtype('<f4'), '64FC1': np.dtype('<f8')}

@@ -100,6 +100,18 @@ def array_to_image_fields(array, encoding):
     }
 
 
+def image_message(types, header, array, encoding, data=np.asarray):
+    """
+    Return a sensor_msgs/Image of `array` in `encoding`, as `array_to_image_fields` takes them.
+
+    `types.Image` is the message class (rclpy's or rosbags'); `data` converts the uint8
+    numpy buffer to what it wants (array.array('B') for rclpy, as is for rosbags).
+    """
+    fields = array_to_image_fields(array, encoding)
+    fields['data'] = data(fields['data'])
+    return types.Image(header=header, **fields)
+
+
 def message_to_array(msg, topic='image'):
     """Return the image of a sensor_msgs/Image or CompressedImage as a new numpy array."""
     if hasattr(msg, 'format'):

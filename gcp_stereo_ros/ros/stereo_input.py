@@ -17,8 +17,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from .graph import shm_segment_bytes
 from .messages import stamp_ns
-from .params import make_sync
-from .sync import CameraInfos, other_side, SIDES
+from .sync import CameraInfos, image_sync, other_side, SIDES
 
 STREAK_WARN = 10  # one side arriving this often in a row without its twin -> warning
 SHM_ADVICE = ('raise segment_size in the Fast DDS profile of every process of the graph '
@@ -119,13 +118,19 @@ class StereoInput:
 
     def reset_sync(self, values):
         """Start pairing afresh with the sync parameters in `values`."""
-        self.sync = make_sync(values)
+        self.sync = image_sync(values)
         newest = getattr(self, 'infos', None)
         self.infos = CameraInfos(self.sync.tolerance_ns)
         for side, msg in (newest.newest.items() if newest else ()):
             if msg is not None:
                 self.infos.add(side, stamp_ns(msg.header), msg)
         self._release(force=True)
+
+    def close(self):
+        """Unsubscribe every topic and destroy the guard condition `wake` triggers."""
+        for sub in (*self._info_subs, *self.subs.values()):
+            self._node.destroy_subscription(sub)
+        self._node.destroy_guard_condition(self._wake)
 
     def wake(self):
         """Have the executor look at the image subscriptions again (any thread)."""

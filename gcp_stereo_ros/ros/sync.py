@@ -12,8 +12,12 @@ from collections import deque
 import math
 from statistics import median_low
 
+from .params import BY_NAME, SYNC_PARAMS
+from ..stereo.memory import MIB
+
 SIDES = ('left', 'right')
 PERIOD_GAPS = 30  # the stamp gaps an unbounded tolerance takes the frame period from
+QUEUE_SHARE = 4  # each side's queue of the node's images holds at most memory_limit_mb / 4
 
 
 def tolerance_ns(approximate, tolerance_seconds):
@@ -205,6 +209,14 @@ class StampSync:
 def _closest(stamps, lo, hi, stamp_ns):
     """Return the index in [lo, hi) of the stamp closest to `stamp_ns`, the older on a tie."""
     return min(range(lo, hi), key=lambda k: abs(stamps[k] - stamp_ns))
+
+
+def image_sync(values):
+    """Return the StampSync of the node's images for its parameter `values` (or defaults)."""
+    queue_size, approximate, tolerance, memory_limit_mb = (
+        values.get(name, BY_NAME[name].default) for name in SYNC_PARAMS)
+    return StampSync(SIDES, queue_size, tolerance_ns(approximate, tolerance),
+                     memory_limit_mb * MIB // QUEUE_SHARE)
 
 
 def other_side(side):

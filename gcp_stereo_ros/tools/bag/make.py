@@ -7,8 +7,7 @@ from tqdm import tqdm
 from .files import (COMPRESSED, GT, IMAGE, INFO, output_bag, SENSOR_QOS, stamped_header,
                     topic_name, TYPES, TYPESTORE)
 from ...evaluation.datasets import list_frames, load_frames
-from ...ros import messages
-from ...ros.rosimage import array_to_compressed_fields
+from ...ros.rosimage import array_to_compressed_fields, image_message
 from ...ros.sync import SIDES
 from ...stereo.images import mask_image
 
@@ -49,10 +48,9 @@ def frame_messages(frame, stamp_ns, compressed=None):
         known = np.isfinite(frame.gt)
         valid = known if frame.valid is None else known & frame.valid
         msgs['gt/frame_name'] = TYPES.String(data=frame.name)
-        msgs['gt/disparity'] = messages.image_message(TYPES, headers['left'],
-                                                      np.where(known, frame.gt, 0), '32FC1')
-        msgs['gt/valid'] = messages.image_message(TYPES, headers['left'], mask_image(valid),
-                                                  'mono8')
+        msgs['gt/disparity'] = image_message(TYPES, headers['left'],
+                                             np.where(known, frame.gt, 0), '32FC1')
+        msgs['gt/valid'] = image_message(TYPES, headers['left'], mask_image(valid), 'mono8')
     for side in SIDES:
         msgs[f'{side}/camera_info'] = camera_info(headers[side], frame, side)
     for side in SIDES:
@@ -61,7 +59,7 @@ def frame_messages(frame, stamp_ns, compressed=None):
             msgs[f'{side}/image_rect/compressed'] = TYPES.CompressedImage(
                 header=headers[side], **array_to_compressed_fields(image, compressed))
         else:
-            msgs[f'{side}/image_rect'] = messages.image_message(
+            msgs[f'{side}/image_rect'] = image_message(
                 TYPES, headers[side], image, 'rgb8' if image.ndim == 3 else 'mono8')
     return msgs
 

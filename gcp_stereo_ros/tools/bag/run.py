@@ -17,9 +17,10 @@ from ...evaluation.metrics import error_rates, THRESHOLDS
 from ...evaluation.viz import disparity_picture, save_png
 from ...ros import messages
 from ...ros.camera import camera_model, depth_scale, Rectifier
-from ...ros.params import config_from_params, config_warnings, load_params_file, make_sync
+from ...ros.cnn_setup import config_warnings, load_cnn
+from ...ros.params import config_from_params, load_params_file
 from ...ros.rosimage import image_to_array, message_to_array
-from ...ros.sync import CameraInfos
+from ...ros.sync import CameraInfos, image_sync
 from ...stereo.images import mask_image
 from ...stereo.memory import mmap_large_arrays
 from ...stereo.pipeline import StereoPipeline
@@ -174,9 +175,7 @@ def run_pipeline(values, params=None):
         config = config_from_params(values)
     except ValueError as err:
         raise ValueError(f'{params or "node parameters"}: {err}') from None
-    pipeline = StereoPipeline(config)
-    if pipeline.config.use_gcp:
-        pipeline.net  # a missing weights file fails here, before any output
+    pipeline = load_cnn(StereoPipeline(config))  # weights that cannot work: before any output
     for text in config_warnings(pipeline):
         warn(text)
     return pipeline
@@ -188,7 +187,7 @@ def convert(pipeline, values, args):
 
     `values`: the node parameters (the pair sync's); args: the options of `run`.
     """
-    sync = make_sync(values)
+    sync = image_sync(values)
     rectify = args.rectify or values.get('rectify', False)
     with open_bag(args.inp) as reader, output_bag(args.out, args.storage, args.force) as writer:
         topics = find_topics(reader, args.inp, args)
