@@ -78,3 +78,73 @@ def test_no_module_is_over_the_line_limit():
     assert len(sizes) > 40 and 'tools/bag/run.py' in sizes
     over = {name: lines for name, lines in sizes.items() if lines > MAX_LINES}
     assert not over, over
+
+
+# What an import inside a function may load: a dependency that not every use needs (torch
+# where no GCPs are used, numba-cuda, ray, ROS where the bag tools run without it), or a
+# module of the package that imports one at its top.
+OPTIONAL = ROS | {'torch', 'numba.cuda', 'ray', 'rcl_interfaces'}
+
+
+def module_imports():
+    """Return {module: (names imported at the top, names imported inside functions)}."""
+    out = {}
+    for path in sorted(PACKAGE.rglob('*.py')):
+        name = module_name(path)
+        tree = ast.parse(path.read_text())
+        lazy = set()
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for sub in ast.walk(node):
+                    if isinstance(sub, (ast.Import, ast.ImportFrom)):
+                        lazy |= imported(ast.unparse(sub), name)
+        out[name.removesuffix('.__init__')] = (imported(path.read_text(), name) - lazy, lazy)
+    return out
+
+
+def package_modules(names, modules):
+    """Return the modules of the package among imported `names` (a name may be a member)."""
+    return {n if n in modules else n.rpartition('.')[0] for n in names
+            if n in modules or n.rpartition('.')[0] in modules}
+
+
+def test_no_import_circle():
+    modules = module_imports()
+    graph = {m: package_modules(top | lazy, modules) - {m} for m, (top, lazy) in modules.items()}
+    assert 'gcp_stereo_ros.stereo.backend_cuda' in graph['gcp_stereo_ros.stereo.backend']
+    state = {}
+
+    def visit(m, trail):
+        state[m] = 'open'
+        for n in sorted(graph[m]):
+            assert state.get(n) != 'open', f'import circle: {" -> ".join(trail + [m, n])}'
+            if n not in state:
+                visit(n, trail + [m])
+        state[m] = 'done'
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [])
+
+
+def test_imports_inside_functions_load_only_optional_dependencies():
+    modules = module_imports()
+    heavy = {}
+
+    def optional(m):
+        """Tell whether importing package module `m` loads an optional dependency."""
+        if m not in heavy:
+            heavy[m] = False  # a circle is test_no_import_circle's to report
+            top = modules[m][0]
+            heavy[m] = bool(violations(top, OPTIONAL)) or any(
+                optional(n) for n in package_modules(top, modules) - {m})
+        return heavy[m]
+
+    assert optional('gcp_stereo_ros.stereo.backend_cuda') and optional('gcp_stereo_ros.stereo.cnn')
+    assert not optional('gcp_stereo_ros.stereo.pipeline')  # torch only where GCPs are used
+    for m, (_, lazy) in modules.items():
+        plain = {n for n in lazy if not violations({n}, OPTIONAL)}
+        inside = package_modules(plain, modules)
+        outside = {n for n in plain if not n.startswith('gcp_stereo_ros')}
+        needless = sorted(outside | {n for n in inside if not optional(n)})
+        assert not needless, f'{m} imports {needless} inside a function: import it at the top'

@@ -134,8 +134,8 @@ def test_a_pair_over_the_memory_limit_is_refused(harness, pair):
 def test_arrays_are_let_go_when_quiet(harness, pair):
     harness.send_pair(*pair, 'rgb8', 85_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity')
-    assert harness.node.pipeline._workspace  # kept for the next frame ...
-    wait_for(lambda: not harness.node.pipeline._workspace, 'arrays let go', 5)
+    assert harness.node.pipeline.backend.kept  # kept for the next frame ...
+    wait_for(lambda: not harness.node.pipeline.backend.kept, 'arrays let go', 5)
 
 
 @pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)

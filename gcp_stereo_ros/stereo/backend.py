@@ -1,122 +1,17 @@
 """
-The stages of the pipeline as one interface, `Backend`, and its CPU implementation.
+The pipeline's stages on the CPU (`CpuBackend`), and the backend of a device (`backend`).
 
-`StereoPipeline` runs the stages once, in order, over buffers it passes explicitly; a stage
-returns arrays or a named type of them and never calls back. Two implementations:
-`CpuBackend` (numpy arrays, numba kernels, torch for the CNN) and `backend_cuda.CudaBackend`
-(torch tensors on a GPU, numba-cuda kernels), with the same results within float rounding
-(integer outputs and uint16 volumes bit-identical). `backend(device)` returns the one for a
-`StereoConfig.device`.
+`backend(device)` returns the `stages.Backend` of a `StereoConfig.device`: this module's
+`CpuBackend`, or `backend_cuda.CudaBackend` on a GPU.
 """
-from typing import Any, NamedTuple, Protocol
-
 import cv2
 import numpy as np
 
 from . import cost, gcp, sgm
-from .disparity_confidence import ConfidenceFit, features, margin
+from .disparity_confidence import features, margin
 from .images import gray_pair
 from .memory import call_glibc
-
-Array = Any  # a numpy array on the CPU, a torch tensor on a GPU
-
-
-class CnnConfidence(NamedTuple):
-    """The CNN's outputs for a pair, each (H, W) (`cnn.confidence`)."""
-
-    cof_c: Array  # float32 in [0, 1]: the calibrated CNN confidence of cof_d
-    cof_d: Array  # int32 px: the CNN's best disparity
-    cof_dr: Array  # int32 px: the right view's best disparity at each right pixel
-
-
-class CostVolume(NamedTuple):
-    """A cost volume (H, W, D), float32 or uint16 fixed point, and its largest cost."""
-
-    costs: Array
-    top: float
-
-
-class Winners(NamedTuple):
-    """The winner-takes-all of summed costs, each (H, W) (`sgm.winners`)."""
-
-    disparity: Array  # float32 px, sub-pixel with `subpixel`
-    consistent: Array  # bool: the right view's winner at x - d is within 1 px of d
-    margin: Array  # float32 in [0, 1]: 1 - S(winner) / S(rival) (`disparity_confidence.margin`)
-
-
-class Buffers(NamedTuple):
-    """Arrays kept from the previous pair for the next, None where none fits."""
-
-    cost: Array | None  # the cost volume
-    total: Array | None  # the summed path costs
-    scratch: Array | None  # float32 rows of the CPU's CNN filter (`cnn_filter.StripFilter`)
-
-
-class Backend(Protocol):
-    """
-    The stages of `StereoPipeline` on one device, in the order it runs them.
-
-    Arrays are the backend's own (`Array`); `upload` and `to_host` cross to and from numpy.
-    `cancel`: a CancelFlag that CPU kernels check (raising Cancelled); a GPU ignores it.
-    """
-
-    host: bool  # True: the stages run on the host, there is nothing to upload or download
-    torch_device: Any  # where the CNN runs: 'cpu' or a torch.device
-
-    def buffers(self, shape: tuple, dtype: np.dtype, scratch: int) -> Buffers:
-        """Return the kept buffers for volumes `shape` of `dtype`, letting go the others."""
-
-    def keep(self, buffers: Buffers) -> None:
-        """Keep `buffers` for the next pair."""
-
-    def release(self) -> None:
-        """Let go of every kept buffer."""
-
-    def synchronize(self) -> None:
-        """Wait for the device's work so far (for stage timings)."""
-
-    def upload(self, left: np.ndarray, right: np.ndarray, standardized: bool) -> Any:
-        """Return the gray float32 pair (H, W) on the device, with `standardized` copies."""
-
-    def to_device(self, cnn: CnnConfidence) -> CnnConfidence:
-        """Return host CNN outputs on the device."""
-
-    def cnn_confidence(self, net, pair, max_disp: int, bf16, radius: int, scratch,
-                       seconds: dict, cancel=None) -> CnnConfidence:
-        """Return the CNN confidence of the pair; `seconds` gains 'cnn' and 'confidence'."""
-
-    def cost_volume(self, pair, max_disp: int, cost: str, window: int, scale: int,
-                    dtype: np.dtype, out, cancel=None) -> CostVolume:
-        """Return the matching cost volume (`cost.cost_volume`), into `out` if not None."""
-
-    def select_refine(self, volume: CostVolume, cnn: CnnConfidence, theta: float,
-                      c_hi: float, c_low: float, lr_check: bool,
-                      plain) -> tuple[CostVolume, Array]:
-        """Refine `volume` in place by the GCPs `gcp.select` picks; return it and the GCPs."""
-
-    def aggregate(self, volume: CostVolume, p1: float, p2: float, paths: int, out,
-                  cancel=None) -> Array:
-        """Return the summed SGM path costs of `volume` (`sgm.aggregate`) into `out`."""
-
-    def disparity(self, total, cancel=None) -> Array:
-        """Return the integer winner-takes-all disparity of summed costs, float32 (H, W)."""
-
-    def winners(self, total, subpixel: bool, cancel=None) -> Winners:
-        """Return the winners of summed costs, with the left-right agreement and margin."""
-
-    def median(self, disparity) -> Array:
-        """Return the 3x3 median of the disparity, as cv2.medianBlur."""
-
-    def disparity_confidence(self, fit: ConfidenceFit, winners: Winners,
-                             cnn: CnnConfidence | None, gcp) -> Array:
-        """Return the disparity confidence (`disparity_confidence.features`, then `fit`)."""
-
-    def to_host(self, array) -> np.ndarray | None:
-        """Return `array` as a numpy array (None stays None)."""
-
-    def costs_at(self, total, rows: np.ndarray, cols: np.ndarray,
-                 disparities: np.ndarray) -> np.ndarray:
-        """Return total[rows[i], cols[i], disparities[i, j]] on the host, (n, k)."""
+from .stages import Backend, Buffers, CnnConfidence, CostVolume, Winners
 
 
 class CpuBackend:

@@ -10,10 +10,10 @@ import torch
 import torch.nn.functional as F
 
 from . import cnn_cuda, cost_cuda, disparity_confidence_cuda, gcp_cuda, gpu, sgm_cuda
-from .backend import Buffers, CnnConfidence, CostVolume, Winners
 from .cnn import padded_input
 from .cost import max_cost
 from .images import mean_std
+from .stages import Buffers, CnnConfidence, CostVolume, Winners
 
 CNN_TYPES = (np.float32, np.int32, np.int32)  # of cof_c, cof_d, cof_dr
 

@@ -13,7 +13,7 @@ The four confidences of the package, one name each:
   published on the `confidence` topic;
 - the disparity confidence (here; `StereoResult.disparity_confidence`, the
   `disparity_confidence` topic), which min_confidence cuts;
-- `CnnConfidence` (`backend`): the CNN's outputs (cof_c, cof_d, cof_dr) of a run, which
+- `CnnConfidence` (`stages`): the CNN's outputs (cof_c, cof_d, cof_dr) of a run, which
   `StereoPipeline(..., cnn=...)` reuses;
 - `ConfidenceFit` (here): the fitted map from features to the disparity confidence.
 """

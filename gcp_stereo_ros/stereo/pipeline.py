@@ -1,7 +1,7 @@
 """
 The one stereo pipeline every caller uses: evaluation, the ROS node and the bag tools.
 
-`StereoPipeline` runs the stages of a `backend.Backend` once, in order, over explicit
+`StereoPipeline` runs the stages of a `stages.Backend` once, in order, over explicit
 buffers: upload -> CNN confidence -> cost volume -> plain SGM -> GCP selection and
 refinement -> SGM -> winner-takes-all (and median) -> disparity confidence -> download ->
 invalidation (`postprocess`). Its settings are a `config.StereoConfig`, its memory is
@@ -13,12 +13,13 @@ import time
 
 import numpy as np
 
-from .backend import Backend, backend, CnnConfidence
+from .backend import backend
 from .cnn_filter import scratch_size
 from .config import StereoConfig
 from .images import bin_area, gray_pair, subsample, upsample
 from .memory import call_glibc, check_memory, volume_arithmetic
 from .postprocess import invalidate
+from .stages import Backend, CnnConfidence
 from .weights import confidence_fit
 
 # The paths of plain SGM for `plain_check` and `gcp_plain_check` (horizontal and

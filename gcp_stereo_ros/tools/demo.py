@@ -26,6 +26,7 @@ from ..evaluation.datasets import load_frame
 from ..evaluation.metrics import error_rates
 from ..evaluation.viz import disparity_picture, save_png
 from ..ros.graph import package_file, peer_graph
+from ..ros.rosimage import image_to_array
 from ..stereo.images import mask_image
 
 SHARED = Path(__file__).resolve().parents[3] / 'shared' / 'data'
@@ -70,8 +71,6 @@ def main(argv=None):
                     params_file=package_file('config/gcp_stereo.yaml')) as (peer, node):
         from sensor_msgs.msg import Image
         from stereo_msgs.msg import DisparityImage
-
-        from ..ros.rosimage import image_to_array
 
         got = {'disparity': [], 'gcp_mask': []}
         peer.create_subscription(DisparityImage, 'disparity', got['disparity'].append, 10)
