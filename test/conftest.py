@@ -11,7 +11,9 @@ import pytest
 # cross-talk; the shipped Fast DDS profile lets large images through shared memory.
 join_private_graph(1 + os.getpid() % 100)
 
-DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
+# GCP_STEREO_DATA: elsewhere (a GPU machine, where the frames travel inside the checkout).
+DATA = Path(os.environ.get('GCP_STEREO_DATA',
+                           Path(__file__).resolve().parents[2] / 'shared' / 'data')).resolve()
 
 
 @pytest.fixture(scope='module')

@@ -129,5 +129,5 @@ def cnn_confidence(net, left, right, max_disp, device='cpu', bf16=False, radius=
     """
     b = backend(device)
     pair = b.upload(*gray_pair(left, right), True)
-    cnn = b.cnn_confidence(net, pair, max_disp, bf16, radius, None, {})
+    cnn = b.cnn_confidence(net, pair, max_disp, bf16, radius, None, None)
     return CnnConfidence(*(b.to_host(a) for a in cnn))

@@ -75,8 +75,9 @@ def device_confidence(net, x, max_disp, bf16=False, seconds=None, radius=0):
     Return `cnn.confidence`'s (cof_c, cof_d, cof_dr) as tensors on the device of `x`.
 
     `x`: the pair as `cnn.padded_input` makes it, on the net's device; `radius`: of the
-    guided filter (0: none). `seconds`: as for `cnn.confidence` (the device is synchronized
-    at each stage's end).
+    guided filter (0: none). `seconds`: a dict that gains the device time of the
+    convolutions ('cnn') and of the correlation ('confidence'), waiting for the device at
+    each strip's stages; None: not timed, nothing waits.
     """
     h, w = x.shape[2] - 2 * PAD, x.shape[3] - 2 * PAD
     check_max_disp(max_disp, w)
@@ -85,8 +86,8 @@ def device_confidence(net, x, max_disp, bf16=False, seconds=None, radius=0):
     cof_d = torch.empty((h, w), dtype=torch.int32, device=x.device)
     cof_dr = torch.empty((h, w), dtype=torch.int32, device=x.device)
     guide = x[0, 0, PAD:PAD + h, PAD:PAD + w]
-    seconds = {} if seconds is None else seconds
-    for stage in ('cnn', 'confidence'):
+    timed = seconds is not None
+    for stage in ('cnn', 'confidence') if timed else ():
         seconds.setdefault(stage, 0.0)
     with torch.inference_mode(), ieee_float32():
         for y0 in range(0, h, STRIP_ROWS):
@@ -95,7 +96,8 @@ def device_confidence(net, x, max_disp, bf16=False, seconds=None, radius=0):
             t = time.perf_counter()
             f = F.normalize(descriptors(net, x[:, :, lo:hi + 2 * PAD], bf16).float(), dim=3,
                             eps=EPS)
-            _synchronize(x.device)
+            if timed:
+                _synchronize(x.device)
             t1 = time.perf_counter()
             if radius:
                 cof_c[y0:y1], cof_d[y0:y1], cof_dr[y0:y1] = filtered_best(
@@ -104,9 +106,10 @@ def device_confidence(net, x, max_disp, bf16=False, seconds=None, radius=0):
             else:
                 cof_c[y0:y1], cof_d[y0:y1] = _band_best(f[0], f[1], int(max_disp))
                 cof_dr[y0:y1] = _band_best(f[1].flip(1), f[0].flip(1), int(max_disp))[1].flip(1)
-            _synchronize(x.device)
-            seconds['cnn'] += t1 - t
-            seconds['confidence'] += time.perf_counter() - t1
+            if timed:
+                _synchronize(x.device)
+                seconds['cnn'] += t1 - t
+                seconds['confidence'] += time.perf_counter() - t1
     return calibrated(net, cof_c, radius), cof_d, cof_dr
 
 

@@ -143,7 +143,8 @@ class StereoPipeline:
         return self._net
 
     def __call__(self, left: np.ndarray, right: np.ndarray, cnn: CnnConfidence | None = None,
-                 cancel=None, camera: tuple[float, float] | None = None) -> StereoResult:
+                 cancel=None, camera: tuple[float, float] | None = None,
+                 timed: bool = False) -> StereoResult:
         """
         Return the `StereoResult` of one rectified pair.
 
@@ -164,6 +165,10 @@ class StereoPipeline:
         camera : tuple of float, optional
             (f * T in px m, cx_left - cx_right in px): depth Z = f * T / (d - offset), for
             min_depth and max_depth; None: those limits are not applied.
+        timed : bool
+            Wait for the device at each stage's end, so that `StereoResult.seconds` holds
+            each stage's device time (the bench); else a GPU's stages overlap the host and
+            only their sum is the pair's time. The CPU's stages are timed either way.
 
         Returns
         -------
@@ -191,7 +196,8 @@ class StereoPipeline:
         def lap(stage):
             """Record the time since the last lap as `stage` (None: only restart the clock)."""
             nonlocal t
-            b.synchronize()
+            if timed:
+                b.synchronize()
             now = time.perf_counter()
             if stage is not None:
                 seconds[stage] = now - t
@@ -219,7 +225,7 @@ class StereoPipeline:
         lap(None if b.host else 'upload')
         if fresh:
             on_device = b.cnn_confidence(self.net, pair, nd, cfg.bf16, radius, kept.scratch,
-                                         seconds, cancel)
+                                         seconds if timed or b.host else None, cancel)
             lap(None)  # the CNN timed its own stages
         volume = b.cost_volume(pair, nd, cfg.cost, cfg.window, scale or 1, dtype, kept.cost,
                                cancel)

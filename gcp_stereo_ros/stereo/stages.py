@@ -68,7 +68,7 @@ class Backend(Protocol):
         """Let go of every kept buffer."""
 
     def synchronize(self) -> None:
-        """Wait for the device's work so far (for stage timings)."""
+        """Wait for the device's work so far (for timing its stages)."""
 
     def upload(self, left: np.ndarray, right: np.ndarray, standardized: bool) -> Any:
         """Return the gray float32 pair (H, W) on the device, with `standardized` copies."""
@@ -78,7 +78,11 @@ class Backend(Protocol):
 
     def cnn_confidence(self, net, pair, max_disp: int, bf16, radius: int, scratch,
                        seconds: dict, cancel=None) -> CnnConfidence:
-        """Return the CNN confidence of the pair; `seconds` gains 'cnn' and 'confidence'."""
+        """
+        Return the CNN confidence of the pair.
+
+        `seconds` gains 'cnn' and 'confidence' (a GPU waits for them; None: not timed).
+        """
 
     def cost_volume(self, pair, max_disp: int, cost: str, window: int, scale: int,
                     dtype: np.dtype, out, cancel=None) -> CostVolume:

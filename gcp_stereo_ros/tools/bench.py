@@ -7,10 +7,12 @@ median is reported, with its ratio to OpenCV's time on the same images. Machines
 read the ratios, not the absolute seconds. The process allocates as the node and the bag
 tool do (`mmap_large_arrays`); the first line names the CPU.
 
-The default pipeline (bf16 'auto') runs end to end on the CPU as is and in fp32, with
-`downsample` 2 (as is and in fp32) and 4; with a CUDA GPU also on it (`device: cuda`,
-transfers included, as is and in fp32), with its stages as `cuda_<stage>`. Without one it
-says why and measures no CUDA figure.
+`--device cpu` (the default): the default pipeline (bf16 'auto') end to end as is and in
+fp32, with `downsample` 2 (as is and in fp32) and 4, and the cost and SGM stages alone.
+`--device cuda`: the default pipeline on the GPU (transfers included) as is, in fp32 and with
+`downsample` 2, its stages as `cuda_<stage>` (each stage waits for the GPU to be timed, the
+pair's own time does not); the JSON names the GPU. Without a usable GPU it says why and
+exits 1.
 """
 import argparse
 import json
@@ -23,6 +25,7 @@ import time
 
 import cv2
 import numpy as np
+import torch
 
 from .cli import console_main, positive_int
 from .evaluate import opencv_sgbm
@@ -52,6 +55,13 @@ def cpu_name():
     return f'{name} ({", ".join(extensions) or "no AVX2"}), {os.cpu_count()} cores'
 
 
+def gpu_name():
+    """Return the first GPU's name, memory and compute capability, and torch's CUDA version."""
+    p = torch.cuda.get_device_properties(0)
+    return (f'{p.name}, {p.total_memory / 2 ** 30:.0f} GiB, compute capability '
+            f'{p.major}.{p.minor}; torch {torch.__version__}, CUDA {torch.version.cuda}')
+
+
 def median_seconds(fn, repeat):
     fn()
     times = []
@@ -63,11 +73,18 @@ def median_seconds(fn, repeat):
 
 
 def median_pipeline(pipeline, left, right, repeat):
-    """Median end-to-end seconds of `pipeline` on the pair, and the median of each stage."""
-    stages = []
-    total = median_seconds(lambda: stages.append(pipeline(left, right).seconds), repeat)
-    timed = stages[1:]  # not the warm-up
-    return total, {k: statistics.median(s[k] for s in timed) for k in timed[0]}
+    """
+    Median end-to-end seconds of `pipeline` on the pair, and the median of each stage.
+
+    The pair's time is measured as the node runs it; on a GPU, where nothing then waits for
+    the device between stages, the stages are timed in runs of their own that wait.
+    """
+    runs = []
+    total = median_seconds(lambda: runs.append(pipeline(left, right).seconds), repeat)
+    if not pipeline.backend.host:
+        runs = [pipeline(left, right, timed=True).seconds for _ in range(repeat + 1)]
+    stages = runs[1:]  # not the warm-up
+    return total, {k: statistics.median(s[k] for s in stages) for k in stages[0]}
 
 
 def volume_stage_seconds(left, right, nd, repeat):
@@ -102,8 +119,17 @@ def main(argv=None):
     ap.add_argument('--frame', help='frame name in that dataset (default: the first)')
     ap.add_argument('--max-disp', type=positive_int, default=128)
     ap.add_argument('--repeat', type=positive_int, default=5)
-    ap.add_argument('--json', type=Path, help='write {"stages", "ratios", "peak_rss_mb"} here')
+    ap.add_argument('--device', choices=('cpu', 'cuda'), default='cpu',
+                    help="the pipeline's device (default cpu; cuda: 'cuda', the first GPU)")
+    ap.add_argument('--json', type=Path,
+                    help='write {"stages", "ratios", "peak_rss_mb", "device"} here')
     args = ap.parse_args(argv)
+    if args.device == 'cuda':
+        try:
+            gpu.check_device('cuda')
+        except ValueError as err:
+            print(f'gcp-stereo-bench: {err}', file=sys.stderr)
+            return 1
 
     mmap_large_arrays()  # the allocator as the node and the bag tool run it
     frame = load_frame(args.dataset, args.frame or list_frames(args.dataset)[0])
@@ -112,19 +138,24 @@ def main(argv=None):
     nd = args.max_disp
     print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, '
           f'repeat {args.repeat}; {cpu_name()}')
-    seconds = volume_stage_seconds(left, right, nd, args.repeat)
+    if args.device == 'cuda':
+        print(f'GPU: {gpu_name()}')
+    if args.device == 'cuda':
+        seconds = {'opencv_sgbm_hh': median_seconds(lambda: opencv_sgbm(left, right, nd),
+                                                    args.repeat)}
+        variants = {'cuda_pipeline': {'device': 'cuda'},
+                    'cuda_pipeline_fp32': {'device': 'cuda', 'bf16': False},
+                    'cuda_pipeline_downsample2': {'device': 'cuda', 'downsample': 2}}
+        device = gpu_name()
+    else:
+        seconds = volume_stage_seconds(left, right, nd, args.repeat)
+        variants = {'pipeline': {}, 'pipeline_fp32': {'bf16': False},
+                    'pipeline_downsample2': {'downsample': 2},
+                    'pipeline_downsample2_fp32': {'downsample': 2, 'bf16': False},
+                    'pipeline_downsample4': {'downsample': 4}}
+        device = cpu_name()
     pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
-    print(f"pipeline: the defaults; bf16 'auto' is {bf16_native()} here")
-    variants = {'pipeline': {}, 'pipeline_fp32': {'bf16': False},
-                'pipeline_downsample2': {'downsample': 2},
-                'pipeline_downsample2_fp32': {'downsample': 2, 'bf16': False},
-                'pipeline_downsample4': {'downsample': 4}}
-    try:
-        gpu.check_device('cuda')
-        variants.update(cuda_pipeline={'device': 'cuda'},
-                        cuda_pipeline_fp32={'device': 'cuda', 'bf16': False})
-    except ValueError as err:
-        print(f'CUDA stages not measured: {err}')
+    print(f"pipeline: the defaults; bf16 'auto' is {bf16_native()} on the CPU here")
     breakdown = {}
     for name, changes in variants.items():
         pipe = pipeline.with_config(pipeline.config.replace(**changes))
@@ -146,8 +177,10 @@ def main(argv=None):
               'median of its stages:',
               ', '.join(f'{k} {v:.3f} s' for k, v in stage_seconds.items()))
     if args.json:
-        args.json.write_text(
-            json.dumps({'stages': seconds, 'ratios': ratios, 'peak_rss_mb': peak}, indent=1))
+        args.json.write_text(json.dumps({'stages': seconds, 'ratios': ratios, 'peak_rss_mb': peak,
+                                         'device': device, 'repeat': args.repeat,
+                                         'breakdown': breakdown}, indent=1))
+    return 0
 
 
 if __name__ == '__main__':
