@@ -22,9 +22,8 @@ from .postprocess import invalidate
 from .stages import Backend, CnnConfidence
 from .weights import confidence_fit
 
-# The paths of plain SGM for `plain_check` and `gcp_plain_check` (horizontal and
-# vertical): on the validation frames as good a second opinion as 16, in a quarter of the
-# time (doc/published.md).
+# The paths of plain SGM for `plain_check` and `gcp_plain_check`: horizontal and vertical
+# (chosen on the validation frames: doc/published.md, "Plain SGM as a second opinion").
 PLAIN_PATHS = 4
 
 
@@ -48,17 +47,17 @@ class StereoResult:
     Attributes
     ----------
     disparity : numpy.ndarray
-        float32 px in [0, max_disp - 1], sub-pixel with ``subpixel``; NaN (never 0) where
-        the invalidation (`postprocess.invalidate`) rejected the winner.
+        float32 (H, W), px in [0, max_disp - 1], sub-pixel with ``subpixel``; NaN (never 0)
+        where the invalidation (`postprocess.invalidate`) rejected the winner.
     gcp : numpy.ndarray or None
-        bool: the ground control points; None without ``use_gcp``.
+        bool (H, W): the ground control points; None without ``use_gcp``.
     cof_c : numpy.ndarray or None
-        float32 in [0, 1]: the CNN confidence, P(cof_d within 1 px of the truth), which
-        theta cuts; None without ``use_gcp``.
+        float32 (H, W) in [0, 1]: the CNN confidence, P(cof_d within 1 px of the truth),
+        which theta cuts; None without ``use_gcp``.
     cof_d : numpy.ndarray or None
-        int32 px: the CNN's best disparity; None without ``use_gcp``.
+        int32 (H, W), px: the CNN's best disparity; None without ``use_gcp``.
     cof_dr : numpy.ndarray or None
-        int32 px: the right view's CNN disparity at each right pixel; None without
+        int32 (H, W), px: the right view's CNN disparity at each right pixel; None without
         ``use_gcp``.
     seconds : dict
         Wall time in seconds per stage that ran, in order: 'downsample', 'upload' (GPU),
@@ -66,13 +65,13 @@ class StereoResult:
         'refine', 'sgm', 'wta', 'disparity_confidence', 'download' (GPU), 'invalidate',
         'upsample'.
     disparity_confidence : numpy.ndarray or None
-        float32 in [0, 1]: P(the published disparity within 3 px of the truth), 0 where the
-        disparity is NaN; None where no fit ships for the method and weights.
+        float32 (H, W) in [0, 1]: P(the published disparity within 3 px of the truth), 0
+        where the disparity is NaN; None where no fit ships for the method and weights.
     consistent : numpy.ndarray
-        bool: the right view's winner at x - d is within 1 px of d (x - d >= 0), whether
-        or not ``lr_check`` invalidates by it.
+        bool (H, W): the right view's winner at x - d is within 1 px of d (x - d >= 0),
+        whether or not ``lr_check`` invalidates by it.
     margin : numpy.ndarray
-        float32 in [0, 1]: the SGM cost margin 1 - S(winner) / S(rival).
+        float32 (H, W) in [0, 1]: the SGM cost margin 1 - S(winner) / S(rival).
 
     """
 
