@@ -66,5 +66,5 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
         self._state_machine.destroy_when_not_in_use()
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     return run_node(GcpStereoLifecycleNode, __doc__, 'gcp_stereo_lifecycle_node', args)

@@ -8,6 +8,7 @@ cost's values from a preset ('default', or 'paper': the paper's values, nothing 
 import dataclasses
 from dataclasses import dataclass
 import re
+from typing import Any
 
 import numpy as np
 
@@ -18,14 +19,14 @@ from .sgm import PATHS
 # (doc/method.md); theta is on the calibrated scale (cnn.calibrated). plain_check and
 # gcp_plain_check are off for SAD: plain SGM on SAD costs is wrong across the textureless
 # Middlebury scenes (doc/published.md, doc/method.md).
-COST_DEFAULTS = {
+COST_DEFAULTS: dict[str, dict[str, Any]] = {
     'census': {'p1': 12.0, 'p2': 128.0, 'theta': 0.2, 'c_hi': 200.0, 'c_low': 2.0,
                'gcp_lr_check': True, 'gcp_plain_check': True, 'plain_check': 1.5},
     'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.2, 'c_hi': 5.0, 'c_low': 0.001,
             'gcp_lr_check': True, 'gcp_plain_check': False, 'plain_check': 0.0},
 }
 # The paper's values (Zhong et al., section 4): its theta is read on our calibrated scale.
-PAPER = {
+PAPER: dict[str, dict[str, Any]] = {
     'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3,
                'gcp_lr_check': False, 'gcp_plain_check': False},
     'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001,
@@ -33,9 +34,10 @@ PAPER = {
 }
 # Every invalidation off (stereo.postprocess). The paper published every integer WTA
 # disparity: its preset has this and no sub-pixel fit.
-UNFILTERED = {'valid_window': False, 'lr_check': False, 'plain_check': 0.0,
-              'uniqueness_ratio': 0.0, 'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0,
-              'min_confidence': 0.0, 'background_ratio': 0.0}
+UNFILTERED: dict[str, Any] = {
+    'valid_window': False, 'lr_check': False, 'plain_check': 0.0, 'uniqueness_ratio': 0.0,
+    'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0, 'min_confidence': 0.0,
+    'background_ratio': 0.0}
 PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False, 'cnn_filter_radius': 0}
          for cost, values in PAPER.items()}
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
@@ -45,7 +47,7 @@ MAX_COST_PARAM = 10000.0  # P1, P2, c_hi, c_low: far above any useful value of e
 # The valid values of each number field, both ends included: the one source of truth,
 # which the node's parameter descriptors are made from (ros/params.py). The window's
 # range depends on the cost (cost.WINDOWS).
-RANGES = {
+RANGES: dict[str, tuple[int, int] | tuple[float, float]] = {
     'max_disp': (1, 1024),
     'p1': (0.0, MAX_COST_PARAM),
     'p2': (0.0, MAX_COST_PARAM),
@@ -64,7 +66,8 @@ RANGES = {
     'memory_limit_mb': (64, 1 << 20),
 }
 # The only values of these fields.
-CHOICES = {'cost': cost_mod.COSTS, 'paths': PATHS, 'downsample': DOWNSAMPLE, 'bf16': BF16}
+CHOICES: dict[str, tuple[Any, ...]] = {'cost': cost_mod.COSTS, 'paths': PATHS,
+                                       'downsample': DOWNSAMPLE, 'bf16': BF16}
 # The fields the CNN's outputs (StereoResult cof_c, cof_d, cof_dr) depend on: a run may reuse
 # another's outputs (`StereoPipeline.__call__`'s `cnn`) only where these are the same.
 CNN_FIELDS = ('weights', 'device', 'bf16', 'max_disp', 'downsample', 'cnn_filter_radius')
@@ -73,12 +76,12 @@ FLAGS = ('use_gcp', 'gcp_lr_check', 'gcp_plain_check', 'subpixel', 'median', 'va
 DEVICE = re.compile(r'cpu|cuda(:\d+)?')
 
 
-def number_text(value):
+def number_text(value: float) -> str:
     """Return `value` as the range messages and the docs write it: 1e6 as 1000000."""
     return str(int(value)) if float(value).is_integer() else f'{value:g}'
 
 
-def range_text(low, high):
+def range_text(low: float, high: float) -> str:
     """Return the inclusive range [low, high] as text, e.g. '[0, 10000]'."""
     return f'[{number_text(low)}, {number_text(high)}]'
 
@@ -207,14 +210,14 @@ class StereoConfig:
     downsample: int = 1
     memory_limit_mb: int = 3072
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         """Raise ValueError naming every field whose value is invalid (see `_problems`)."""
         found = self._problems()
         if found:
             raise ValueError('; '.join(found))
 
     @classmethod
-    def for_cost(cls, cost, preset='default', **overrides):
+    def for_cost(cls, cost: str, preset: str = 'default', **overrides: Any) -> 'StereoConfig':
         """
         Return the config with the `preset`'s values for `cost`, then `overrides` applied.
 
@@ -229,11 +232,11 @@ class StereoConfig:
             raise ValueError(f'cost must be one of {tuple(COST_DEFAULTS)}, got {cost!r}')
         return cls(**{'cost': cost, **PRESETS[preset][cost], **overrides})
 
-    def replace(self, **changes):
+    def replace(self, **changes: Any) -> 'StereoConfig':
         """Return a copy with the fields `changes` changed (``dataclasses.replace``)."""
         return dataclasses.replace(self, **changes)
 
-    def _problems(self):
+    def _problems(self) -> list[str]:
         """
         Return a sentence for each invalid value, [] if all are valid.
 
@@ -281,22 +284,22 @@ class StereoConfig:
         return found
 
     @property
-    def matched_radius(self):
+    def matched_radius(self) -> int:
         """Return the CNN filter's radius on the matching grid: r / downsample, >= 1 (0: off)."""
         return max(1, self.cnn_filter_radius // self.downsample) if self.cnn_filter_radius else 0
 
     @property
-    def plain_sgm(self):
+    def plain_sgm(self) -> bool:
         """Whether plain SGM runs: with GCPs, for gcp_plain_check or plain_check."""
         return self.use_gcp and bool(self.gcp_plain_check or self.plain_check)
 
     @property
-    def matched_disp(self):
+    def matched_disp(self) -> int:
         """Return the disparities searched at the matching resolution: max_disp / downsample."""
         return -(-self.max_disp // self.downsample)
 
 
-def _is_number(value, integer):
+def _is_number(value: object, integer: bool) -> bool:
     """Whether `value` is a finite number (an integer if `integer`); booleans are not."""
     if isinstance(value, (bool, np.bool_)):
         return False
@@ -305,7 +308,7 @@ def _is_number(value, integer):
     return not integer and isinstance(value, (float, np.floating)) and bool(np.isfinite(value))
 
 
-def _same(value, choice):
+def _same(value: object, choice: object) -> bool:
     """Whether `value` is `choice`, and of its kind: True is not 1, 2.0 is not 2."""
     flag = isinstance(value, (bool, np.bool_))
     if flag or isinstance(choice, bool):

@@ -10,10 +10,12 @@ bounded by `memory.memory_bytes`.
 from dataclasses import dataclass
 from functools import partial
 import time
+from typing import Any
 
 import numpy as np
 
 from .backend import backend
+from .cancel import CancelFlag
 from .cnn_filter import scratch_size
 from .config import StereoConfig
 from .images import bin_area, gray_pair, subsample, upsample
@@ -100,8 +102,8 @@ class StereoPipeline:
     per 4 KiB); `release` lets them go. So one pipeline serves one thread at a time.
     """
 
-    def __init__(self, config: StereoConfig | None = None, net=None,
-                 _backend: Backend | None = None):
+    def __init__(self, config: StereoConfig | None = None, net: Any = None,
+                 _backend: Backend | None = None) -> None:
         """
         Make a pipeline for `config` (default `StereoConfig()`); `net`: a loaded CNN.
 
@@ -129,7 +131,7 @@ class StereoPipeline:
         self.backend.release()
 
     @property
-    def net(self):
+    def net(self) -> Any:
         """
         Return the CNN, loaded on first use, on the config's device.
 
@@ -142,7 +144,8 @@ class StereoPipeline:
         return self._net
 
     def __call__(self, left: np.ndarray, right: np.ndarray, cnn: CnnConfidence | None = None,
-                 cancel=None, camera: tuple[float, float] | None = None) -> StereoResult:
+                 cancel: CancelFlag | None = None,
+                 camera: tuple[float, float] | None = None) -> StereoResult:
         """
         Return the `StereoResult` of one rectified pair.
 
@@ -187,7 +190,7 @@ class StereoPipeline:
         seconds: dict[str, float] = {}
         t = time.perf_counter()
 
-        def lap(stage):
+        def lap(stage: str | None) -> None:
             """Record the time since the last lap as `stage` (None: only restart the clock)."""
             nonlocal t
             b.synchronize()
@@ -214,7 +217,8 @@ class StereoPipeline:
         # Kept buffers of another shape or type are let go now, before anything is allocated.
         kept = b.buffers(left.shape + (nd,), dtype, filter_size(left.shape, nd, radius))
         pair = b.upload(left, right, cfg.use_gcp or cfg.cost == 'sad')
-        on_device = b.to_device(cnn) if cfg.use_gcp and cnn is not None else None
+        on_device: CnnConfidence | None = (b.to_device(cnn) if cfg.use_gcp and cnn is not None
+                                           else None)
         lap(None if b.host else 'upload')
         if fresh:
             on_device = b.cnn_confidence(self.net, pair, nd, cfg.bf16, radius, kept.scratch,
@@ -230,6 +234,7 @@ class StereoPipeline:
             plain = b.disparity(total, cancel)
             lap('plain_sgm')
         if cfg.use_gcp:
+            assert on_device is not None  # given (cnn) or computed (fresh)
             volume, gcp = b.select_refine(volume, on_device, cfg.theta, fixed(cfg.c_hi),
                                           fixed(cfg.c_low), cfg.gcp_lr_check,
                                           plain if cfg.gcp_plain_check else None)
@@ -244,22 +249,22 @@ class StereoPipeline:
         if self.fit is not None:
             sure = b.disparity_confidence(self.fit, won, on_device, gcp)
             lap('disparity_confidence')
-        disp, consistent, m, sure, gcp, plain = (
-            b.to_host(a) for a in (*won, sure, gcp, plain))
-        if fresh:
+        disp, consistent, m = (b.to_host(a) for a in won)
+        sure, gcp, plain = (None if a is None else b.to_host(a) for a in (sure, gcp, plain))
+        if fresh and on_device is not None:
             cnn = CnnConfidence(*(b.to_host(a) for a in on_device))
         lap(None if b.host else 'download')
         invalidate(disp, consistent, m, cfg, camera, sure, partial(b.costs_at, total), plain)
         if sure is not None:
             sure[np.isnan(disp)] = 0.0
         lap('invalidate')
-        cof_c, cof_d, cof_dr = cnn if cfg.use_gcp else (None,) * 3
+        cof_c, cof_d, cof_dr = cnn if cfg.use_gcp and cnn is not None else (None,) * 3
         if f > 1:  # back to full size, disparities in full-size pixels
-            disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
-                                   for a in (disp, cof_d, cof_dr))
-            disp, consistent, m, gcp, cof_c, cof_d, cof_dr, sure = (
-                None if a is None else upsample(a, f, shape)
-                for a in (disp, consistent, m, gcp, cof_c, cof_d, cof_dr, sure))
+            disp, consistent, m = (upsample(a, f, shape)
+                                   for a in (disp * disp.dtype.type(f), consistent, m))
+            cof_d, cof_dr = (None if a is None else a * a.dtype.type(f) for a in (cof_d, cof_dr))
+            gcp, cof_c, cof_d, cof_dr, sure = (None if a is None else upsample(a, f, shape)
+                                               for a in (gcp, cof_c, cof_d, cof_dr, sure))
             lap('upsample')
         call_glibc('malloc_trim', 0)  # the heap blocks this pair freed (see mmap_large_arrays)
         return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds, sure, consistent, m)

@@ -94,7 +94,7 @@ def volume_stage_seconds(left, right, nd, repeat):
 
 
 @console_main('gcp-stereo-bench')
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--dataset', default='motorcycle',
@@ -115,10 +115,11 @@ def main(argv=None):
     seconds = volume_stage_seconds(left, right, nd, args.repeat)
     pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
     print(f"pipeline: the defaults; bf16 'auto' is {bf16_native()} here")
-    variants = {'pipeline': {}, 'pipeline_fp32': {'bf16': False},
-                'pipeline_downsample2': {'downsample': 2},
-                'pipeline_downsample2_fp32': {'downsample': 2, 'bf16': False},
-                'pipeline_downsample4': {'downsample': 4}}
+    variants: dict[str, dict[str, object]] = {
+        'pipeline': {}, 'pipeline_fp32': {'bf16': False},
+        'pipeline_downsample2': {'downsample': 2},
+        'pipeline_downsample2_fp32': {'downsample': 2, 'bf16': False},
+        'pipeline_downsample4': {'downsample': 4}}
     try:
         gpu.check_device('cuda')
         variants.update(cuda_pipeline={'device': 'cuda'},
