@@ -12,10 +12,9 @@ The public API is `StereoConfig` and `StereoPipeline`.
 import os
 
 # torch and Numba each bring an OpenMP runtime; with the default (active) wait policy the
-# idle threads of one spin while the other computes, which made cost and SGM 2-3x slower
-# right after the CNN on 2 cores. Passive waiting costs nothing here. Takes effect only if
-# set before torch and Numba load (i.e. when this package is imported first); a value the
-# user already set wins.
+# idle threads of one spin while the other computes, slowing cost and SGM right after the
+# CNN. Takes effect only if set before torch and Numba load (i.e. when this package is
+# imported first); a value the user already set wins.
 os.environ.setdefault('OMP_WAIT_POLICY', 'PASSIVE')
 
 from .stereo.config import StereoConfig  # noqa: E402  (after the policy)

@@ -4,8 +4,8 @@ import dataclasses
 import re
 
 from gcp_stereo_ros.ros.params import BY_NAME, coerce, config_from_params, PARAMS
-from gcp_stereo_ros.stereo.config import (CHOICES, FLAGS, PRESETS, range_text, RANGES,
-                                          StereoConfig)
+from gcp_stereo_ros.stereo.config import (CHOICES, COST_DEFAULTS, FLAGS, number_text,
+                                          PRESETS, range_text, RANGES, StereoConfig)
 from gcp_stereo_ros.stereo.cost import WINDOWS
 from gcp_stereo_ros.stereo.pipeline import StereoResult
 from gcp_stereo_ros.tools import evaluate
@@ -164,6 +164,22 @@ def test_every_field_is_documented_with_its_range_or_choices():
         assert f'{cost} in [{low}, {high}]' in docs['window']
     for name, choices in CHOICES.items():
         assert all(repr(c).strip("'") in docs[name] for c in choices), name
+
+
+def _text(value):
+    """Return a default as the docstring writes it: 12.0 as 12, 'census' as 'census'."""
+    return repr(value) if isinstance(value, (bool, str)) else number_text(value)
+
+
+def test_every_field_is_documented_with_its_default_or_each_cost_s():
+    docs = documented_fields(StereoConfig)
+    for field in dataclasses.fields(StereoConfig):
+        per_cost = {cost: values.get(field.name) for cost, values in COST_DEFAULTS.items()}
+        if field.name in COST_DEFAULTS['census'] and len(set(per_cost.values())) > 1:
+            for cost, value in per_cost.items():
+                assert f'{cost} {_text(value)}' in docs[field.name], (field.name, cost)
+        else:
+            assert docs[field.name].endswith(f'default {_text(field.default)}.'), field.name
 
 
 def test_every_result_field_is_documented():

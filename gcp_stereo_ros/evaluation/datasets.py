@@ -5,10 +5,12 @@ Stereo pairs with ground truth from the standard benchmark layouts (KITTI, Middl
 is searched recursively for every supported layout. Frame names are scene paths relative
 to `source` (its basename when `source` is the scene itself), plus `/<image id>` for KITTI.
 """
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 import functools
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -27,6 +29,8 @@ LAYOUTS = ('KITTI 2012 (training/image_0, image_1, disp_noc or disp_occ)',
 _KITTI = (('image_0', 'image_1', ('disp_noc', 'disp_occ'), 0, 1),
           ('image_2', 'image_3', ('disp_noc_0', 'disp_occ_0'), 2, 3))
 _KITTI_MAX_DISP = 128
+Source = str | Path  # 'motorcycle' or a folder
+Loaders = dict[str, Callable[[], 'Frame']]
 
 
 @dataclass
@@ -42,19 +46,20 @@ class Frame:
     gt_right: np.ndarray | None = None
     focal_px: float | None = None
     baseline_m: float | None = None
-    principal_px: tuple | None = None  # (cx, cy) of the left camera; None = the image centre
+    # (cx, cy) of the left camera; None = the image centre
+    principal_px: tuple[float, float] | None = None
     doffs_px: float = 0.0  # right cx - left cx (Middlebury's doffs): depth = f B / (d + doffs)
     # How the scoring departs from the benchmark's own, for reports (e.g. occluded pixels
     # included because the frame has no non-occluded ground truth); None when it does not.
     note: str | None = None
 
 
-def list_frames(source):
+def list_frames(source: Source) -> list[str]:
     """Names of every frame under `source`, sorted."""
     return list(_scan(source))
 
 
-def load_frame(source, name):
+def load_frame(source: Source, name: str) -> Frame:
     """Return the frame called `name` (as returned by `list_frames(source)`)."""
     frames = _scan(source)
     if name not in frames:
@@ -62,7 +67,7 @@ def load_frame(source, name):
     return frames[name]()
 
 
-def load_frames(source, names=None):
+def load_frames(source: Source, names: Iterable[str] | None = None) -> Iterator[Frame]:
     """Yield the frames `names` (default: all of them) one at a time."""
     frames = _scan(source)
     for name in list(frames) if names is None else names:
@@ -71,14 +76,14 @@ def load_frames(source, names=None):
         yield frames[name]()
 
 
-def _scan(source):
+def _scan(source: Source) -> Loaders:
     """Ordered {name: loader} of every frame under `source`."""
     if str(source) == 'motorcycle':
         return {'motorcycle': _motorcycle}
     root = Path(source)
     if not root.is_dir():
         raise ValueError(f'{source}: not "motorcycle" nor an existing folder')
-    frames = {}
+    frames: Loaders = {}
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames.sort()
         folder = Path(dirpath)
@@ -92,14 +97,14 @@ def _scan(source):
     return frames
 
 
-def _scene(folder, rel, files):
+def _scene(folder: Path, rel: str, files: set[str]) -> Loaders:
     """{name: loader} for `folder` if it is a scene of a supported layout, else {}."""
     for training in (folder / 'training', folder):
         for kind in _KITTI:
             left, right, gt_dirs = kind[:3]
             if ((training / left).is_dir() and (training / right).is_dir()
                     and any((training / d).is_dir() for d in gt_dirs)):
-                frames = {}
+                frames: Loaders = {}
                 for image in sorted((training / left).glob('*_10.png')):
                     gt = next((training / d / image.name for d in gt_dirs
                                if (training / d / image.name).is_file()), None)
@@ -133,18 +138,18 @@ def _scene(folder, rel, files):
     return {}
 
 
-def _image(path):
+def _image(path: Path) -> np.ndarray:
     """uint8 gray (H, W) if stored gray, else RGB (H, W, 3)."""
     im = Image.open(path)
     return np.array(im if im.mode == 'L' else im.convert('RGB'))
 
 
-def _gray8(path):
+def _gray8(path: Path) -> np.ndarray:
     """8-bit values; palette PNGs are mapped through their palette."""
     return np.array(Image.open(path).convert('L'))
 
 
-def _pfm(path):
+def _pfm(path: Path) -> np.ndarray:
     """float32 disparity of a one-channel PFM file (rows stored bottom first); inf -> NaN."""
     with open(path, 'rb') as f:
         try:
@@ -163,24 +168,26 @@ def _pfm(path):
     return d
 
 
-def _disparity(raw, scale):
+def _disparity(raw: np.ndarray, scale: float) -> np.ndarray:
     """float32 disparity from stored values; 0 = unknown becomes NaN."""
     d = raw.astype(np.float32) / scale
     d[raw == 0] = np.nan
     return d
 
 
-def _above(gt):
+def _above(gt: np.ndarray) -> int:
     """Smallest multiple of 16 strictly above the largest known disparity."""
     return 16 * (int(np.nanmax(gt)) // 16 + 1)
 
 
-def _up16(ndisp):
+def _up16(ndisp: int) -> int:
     """Round a dataset's number of disparities up to a multiple of 16."""
     return -(-ndisp // 16) * 16
 
 
-def _frame(name, left, right, gt, max_disp, mask=None, gt_right=None, **extra):
+def _frame(name: str, left: np.ndarray, right: np.ndarray, gt: np.ndarray, max_disp: int,
+           mask: np.ndarray | None = None, gt_right: np.ndarray | None = None,
+           **extra: Any) -> Frame:
     """Check the shapes; pixels scored (`valid`) have ground truth and are in `mask`, if any."""
     for what, a in (('right image', right), ('ground truth', gt), ('mask', mask),
                     ('right ground truth', gt_right)):
@@ -191,7 +198,7 @@ def _frame(name, left, right, gt, max_disp, mask=None, gt_right=None, **extra):
     return Frame(name, left, right, gt, valid, max_disp, gt_right, **extra)
 
 
-def _motorcycle():
+def _motorcycle() -> Frame:
     left, right, gt = stereo_motorcycle()
     gt = np.where(np.isfinite(gt), gt, np.nan).astype(np.float32)
     # The calibration of these down-sampled images, as stereo_motorcycle's docstring gives it.
@@ -199,7 +206,7 @@ def _motorcycle():
                   principal_px=(311.193, 254.877), doffs_px=31.086)
 
 
-def _kitti(training, name, stem, kind, gt_path):
+def _kitti(training: Path, name: str, stem: str, kind: tuple[Any, ...], gt_path: Path) -> Frame:
     left, right, (noc, _), *cams = kind
     gt = _disparity(np.array(Image.open(gt_path)), 256.0)
     calib = _kitti_calib(training, stem.split('_')[0], cams)
@@ -210,7 +217,7 @@ def _kitti(training, name, stem, kind, gt_path):
                                                f'no {noc}/{stem}.png')
 
 
-def _kitti_calib(training, frame_id, cams):
+def _kitti_calib(training: Path, frame_id: str, cams: list[int]) -> dict[str, Any]:
     """
     Return the Frame fields of the two cameras' projection matrices, if shipped, else {}.
 
@@ -230,7 +237,7 @@ def _kitti_calib(training, frame_id, cams):
     return {}
 
 
-def _middlebury_v2(folder, name):
+def _middlebury_v2(folder: Path, name: str) -> Frame:
     lines = (folder / 'info.txt').read_text().split()
     if len(lines) < 2:
         raise ValueError(f'{folder / "info.txt"}: '
@@ -241,17 +248,18 @@ def _middlebury_v2(folder, name):
                   mask=_gray8(folder / 'nonocc.png') == 255)
 
 
-def _middlebury_pair(folder, name, left, right, gt_left, gt_right, scale):
+def _middlebury_pair(folder: Path, name: str, left: str, right: str, gt_left: str,
+                     gt_right: str, scale: int | None) -> Frame:
     """2003 (scale from the width: 1800 px = full size) and 2006 (scale given) scenes."""
-    left = _image(folder / f'{left}.png')
-    scale = scale or round(1800 / left.shape[1])
+    image = _image(folder / f'{left}.png')
+    scale = scale or round(1800 / image.shape[1])
     gt = _disparity(_gray8(folder / f'{gt_left}.png'), scale)
-    gt_r = folder / f'{gt_right}.png'
-    gt_r = _disparity(_gray8(gt_r), scale) if gt_r.is_file() else None
-    return _frame(name, left, _image(folder / f'{right}.png'), gt, _above(gt), gt_right=gt_r)
+    path = folder / f'{gt_right}.png'
+    gt_r = _disparity(_gray8(path), scale) if path.is_file() else None
+    return _frame(name, image, _image(folder / f'{right}.png'), gt, _above(gt), gt_right=gt_r)
 
 
-def _middeval3(folder, name):
+def _middeval3(folder: Path, name: str) -> Frame:
     """
     Middlebury 2014 (MiddEval3) and ETH3D two-view scenes.
 
@@ -273,7 +281,7 @@ def _middeval3(folder, name):
                   **calibration)
 
 
-def _calib_txt(path):
+def _calib_txt(path: Path) -> tuple[int | None, dict[str, Any]]:
     """
     Return (ndisp, calibration) of a Middlebury or ETH3D calib.txt.
 
@@ -302,6 +310,6 @@ def _calib_txt(path):
                    'doffs_px': float(k1[0, 2] - k0[0, 2])}
 
 
-def _aloe(folder, name, left, right, gt):
-    gt = _disparity(_gray8(folder / gt), 1.0)
-    return _frame(name, _image(folder / left), _image(folder / right), gt, _above(gt))
+def _aloe(folder: Path, name: str, left: str, right: str, gt: str) -> Frame:
+    disp = _disparity(_gray8(folder / gt), 1.0)
+    return _frame(name, _image(folder / left), _image(folder / right), disp, _above(disp))

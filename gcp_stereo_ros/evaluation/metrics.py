@@ -1,6 +1,7 @@
 """KITTI-style disparity error rates: dense (as a submission is scored) and of published pixels."""
 from numba import njit
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..stereo.postprocess import fill_rows
 
@@ -8,7 +9,7 @@ THRESHOLDS = (1, 2, 3, 5)
 
 
 @njit(cache=True)
-def _fill_columns(d):
+def _fill_columns(d: np.ndarray) -> None:
     """Give each column's non-finite ends its nearest finite value, in place."""
     h, w = d.shape
     for u in range(w):
@@ -22,7 +23,7 @@ def _fill_columns(d):
                 break
 
 
-def interpolate_background(disp):
+def interpolate_background(disp: ArrayLike) -> np.ndarray:
     """
     Return `disp` with its invalid (non-finite) pixels filled as the KITTI devkit does.
 
@@ -37,7 +38,8 @@ def interpolate_background(disp):
     return d
 
 
-def error_rates(disp, gt, valid=None):
+def error_rates(disp: ArrayLike, gt: ArrayLike,
+                valid: ArrayLike | None = None) -> dict[str, float]:
     """
     Return the bad-pixel rates, mean absolute error and density of `disp` against `gt`.
 
@@ -71,7 +73,7 @@ def error_rates(disp, gt, valid=None):
     signed = disp[mask][published] - gt[mask][published]
     rates['density'] = 100.0 * float(published.mean())
 
-    def share(wrong):
+    def share(wrong: np.ndarray) -> float:
         return 100.0 * float(wrong.mean()) if wrong.size else float('nan')
     for t in THRESHOLDS:
         rates[f'bad{t}_published'] = share(np.abs(signed) > t)
@@ -80,7 +82,8 @@ def error_rates(disp, gt, valid=None):
     return rates
 
 
-def sparsification(wrong, score, steps=20):
+def sparsification(wrong: ArrayLike, score: ArrayLike,
+                   steps: int = 20) -> tuple[np.ndarray, np.ndarray]:
     """
     Return (fractions, rates): the sparsification curve of a confidence `score`.
 
@@ -98,7 +101,7 @@ def sparsification(wrong, score, steps=20):
     return fractions, 100.0 * hits[k - 1] / k
 
 
-def sparsification_area(fractions, rates):
+def sparsification_area(fractions: np.ndarray, rates: np.ndarray) -> float:
     """Return the area under a sparsification curve (% x fraction; from fraction 0 on)."""
     return float(np.trapezoid(np.concatenate([[rates[0]], rates]),
                               np.concatenate([[0.0], fractions])))

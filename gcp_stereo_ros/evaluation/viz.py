@@ -9,12 +9,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 INK, PAPER = (0, 0, 0), (255, 255, 255)  # the bar's text and background, BGR
 
 
-def colorize(disp, max_disp):
+def colorize(disp: ArrayLike, max_disp: float) -> np.ndarray:
     """
     Return a uint8 BGR (H, W, 3) TURBO rendering of `disp` over [0, max_disp].
 
@@ -32,7 +33,7 @@ def colorize(disp, max_disp):
     return image
 
 
-def disparity_picture(disp, max_disp, width=None):
+def disparity_picture(disp: ArrayLike, max_disp: float, width: int | None = None) -> np.ndarray:
     """
     Return `colorize(disp, max_disp)` with its colour bar under it, uint8 BGR.
 
@@ -50,7 +51,7 @@ def disparity_picture(disp, max_disp, width=None):
     return np.vstack([image, colour_bar(image.shape[1], max_disp)])
 
 
-def colour_bar(width, max_disp, label='disparity (px)'):
+def colour_bar(width: int, max_disp: float, label: str = 'disparity (px)') -> np.ndarray:
     """
     Return the colour bar of `colorize` over [0, max_disp]: uint8 BGR (h, width, 3).
 
@@ -84,7 +85,7 @@ def colour_bar(width, max_disp, label='disparity (px)'):
     return bar
 
 
-def bar_ends(width, max_disp):
+def bar_ends(width: int, max_disp: float) -> tuple[int, int]:
     """Return the first and last column of the colour strip of a bar `width` px across."""
     scale = float(np.clip(width / 800, 0.4, 1.0))
     widest = max(cv2.getTextSize(t, FONT, scale, 2)[0][0] for t in (f'{max_disp:g}', 'near'))
@@ -92,13 +93,13 @@ def bar_ends(width, max_disp):
     return margin, width - 1 - margin
 
 
-def bar_value(x, width, max_disp):
+def bar_value(x: ArrayLike, width: int, max_disp: float) -> np.ndarray:
     """Return the disparity whose colour the bar `width` px across shows at column(s) `x`."""
     x0, x1 = bar_ends(width, max_disp)
     return np.float32(max_disp) * (np.asarray(x, np.float32) - x0) / max(x1 - x0, 1)
 
 
-def tick_step(max_disp, length, scale, thick):
+def tick_step(max_disp: float, length: float, scale: float, thick: int) -> float:
     """Return the round tick step (1, 2, 5 x 10^k) whose numbers fit apart on `length` px."""
     wide = cv2.getTextSize(f'{max_disp:g}', FONT, scale, thick)[0][0] * 1.5
     step = 10.0 ** np.floor(np.log10(max_disp / 10)) if max_disp >= 10 else 1.0
@@ -109,14 +110,15 @@ def tick_step(max_disp, length, scale, thick):
         step *= 10
 
 
-def _text(image, text, x, baseline, scale, thick, align):
+def _text(image: np.ndarray, text: str, x: float, baseline: float, scale: float, thick: int,
+          align: str) -> None:
     """Write `text` with its baseline at `baseline`, left/centre/right-aligned at column x."""
     w = cv2.getTextSize(text, FONT, scale, thick)[0][0]
     left = {'left': x, 'centre': x - w // 2, 'right': x - w}[align]
     cv2.putText(image, text, (int(left), int(baseline)), FONT, scale, INK, thick, cv2.LINE_AA)
 
 
-def save_png(path, image):
+def save_png(path: str | Path, image: np.ndarray) -> None:
     """Write `image` (gray or BGR, OpenCV order) to `path`, creating parent folders."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -118,7 +118,7 @@ class Spinner:
     for nothing: it destroys the executor's guard condition at once, and a
     MultiThreadedExecutor's callbacks still queued in its pool then fail on it ("cannot use
     Destroyable because destruction was requested", which rclpy prints at exit as an
-    exception never retrieved: twice in a CI run of the tests, which spun their nodes so).
+    exception never retrieved).
     """
 
     def __init__(self, *nodes, context=None):

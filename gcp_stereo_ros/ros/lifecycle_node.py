@@ -58,14 +58,13 @@ class GcpStereoLifecycleNode(GcpStereoNode, LifecycleNode):
         Shut down, destroy the node, and its state machine with it.
 
         rclpy's LifecycleNode (Jazzy 7.1) leaves its state machine, which holds the rcl node,
-        to the garbage collector: the node lived on after destroy_node, and when it went
-        it took rcl's /rosout publisher of its name from whichever node of that name logged
-        through it then (the logs of a node composed later in the process stopped).
+        to the garbage collector, which would then take rcl's /rosout publisher of the
+        node's name from a later node of that name (doc/notes/implementation_history.md).
         """
         self.on_shutdown(None)
         LifecycleNode.destroy_node(self)
         self._state_machine.destroy_when_not_in_use()
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     return run_node(GcpStereoLifecycleNode, __doc__, 'gcp_stereo_lifecycle_node', args)

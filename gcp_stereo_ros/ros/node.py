@@ -295,5 +295,5 @@ class GcpStereoNode(Node):
         return super().destroy_node()
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     return run_node(GcpStereoNode, __doc__, NODE_NAME, args)

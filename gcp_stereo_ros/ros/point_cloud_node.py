@@ -106,5 +106,5 @@ class PointCloudNode(Node):
             getattr(self.get_logger(), severity)(text)
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     return run_node(PointCloudNode, __doc__, NAME, args)

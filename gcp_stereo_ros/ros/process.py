@@ -83,5 +83,5 @@ def run_node(node_class, doc, prog, args=None):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(0)
-    gc.freeze()  # else the interpreter's exit spends about 0.7 s of CPU collecting objects
+    gc.freeze()  # else the interpreter's exit collects every object (doc/failures.md)
     return 0

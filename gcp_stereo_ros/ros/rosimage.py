@@ -68,14 +68,14 @@ def array_to_image_fields(array, encoding):
     and uint8 (H, W, 3) in RGB order for rgb8 or bgr8 (reordered here). `data` is a new
     1-D numpy uint8 array, which is what rosbags' Image takes: `Image(header=h, **fields)`.
 
-    rclpy's Image must not get the numpy array: it copies it element by element (about
-    80 ms for a 1242x375 rgb8 image). Fastest (1-2 memcpys, 0.04-0.1 ms for that image),
-    with the standard-library module `array`:
+    rclpy's Image must not get the numpy array: it copies it element by element. Fastest
+    (1-2 memcpys), with the standard-library module `array`:
         buf = array.array('B'); buf.frombytes(fields.pop('data'))
         msg = Image(header=h, **fields); msg.data = buf
     `Image(header=h, **dict(fields, data=fields['data'].tobytes()))` copies once more and is
     fine too, but never assign bytes to `msg.data`: with ROS_PYTHON_CHECK_FIELDS=1 rclpy
-    checks every byte in Python (about 90 ms); an array.array('B') skips that check.
+    checks every byte in Python; an array.array('B') skips that check (timings:
+    doc/notes/implementation_history.md).
     """
     if encoding not in _WRITE:
         raise ValueError(f'unsupported encoding {encoding!r} for writing; '

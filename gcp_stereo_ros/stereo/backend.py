@@ -4,11 +4,14 @@ The pipeline's stages on the CPU (`CpuBackend`), and the backend of a device (`b
 `backend(device)` returns the `stages.Backend` of a `StereoConfig.device`: this module's
 `CpuBackend`, or `backend_cuda.CudaBackend` on a GPU.
 """
+from typing import Any
+
 import cv2
 import numpy as np
 
 from . import cost, gcp, sgm
-from .disparity_confidence import features, margin
+from .cancel import CancelFlag
+from .disparity_confidence import ConfidenceFit, features, margin
 from .images import gray_pair
 from .memory import call_glibc
 from .stages import Backend, Buffers, CnnConfidence, CostVolume, Winners
@@ -18,13 +21,14 @@ class CpuBackend:
     """The stages on the CPU: numba kernels (threads: numba's), torch for the CNN."""
 
     host = True
-    torch_device = 'cpu'
+    torch_device: Any = 'cpu'
 
-    def __init__(self):
+    def __init__(self) -> None:
         """Start with no kept buffers."""
         self.kept: dict[str, np.ndarray] = {}
 
-    def _fitting(self, name, shape, dtype):
+    def _fitting(self, name: str, shape: tuple[int, ...],
+                 dtype: np.dtype | type) -> np.ndarray | None:
         """Return the kept array `name` if it has `shape` and `dtype`; else let it go."""
         a = self.kept.pop(name, None)
         if a is not None and a.shape == shape and a.dtype == dtype:
@@ -32,7 +36,7 @@ class CpuBackend:
             return a
         return None
 
-    def buffers(self, shape, dtype, scratch):
+    def buffers(self, shape: tuple[int, ...], dtype: np.dtype, scratch: int) -> Buffers:
         """Return the kept buffers that fit, letting go of the others first."""
         cost_, total = (self._fitting(name, shape, dtype) for name in ('cost', 'total'))
         rows = self._fitting('scratch', (scratch,), np.float32)
@@ -40,70 +44,82 @@ class CpuBackend:
             rows = np.empty(scratch, np.float32)
         return Buffers(cost_, total, rows if scratch else None)
 
-    def keep(self, buffers):
+    def keep(self, buffers: Buffers) -> None:
         """Keep the buffers that are not None."""
         self.kept.update((k, v) for k, v in buffers._asdict().items() if v is not None)
 
-    def release(self):
+    def release(self) -> None:
         """Let go of the kept buffers, and of the heap blocks they were."""
         self.kept.clear()
         call_glibc('malloc_trim', 0)
 
-    def synchronize(self):
+    def synchronize(self) -> None:
         """Nothing to wait for: the CPU's stages return when done."""
 
-    def upload(self, left, right, standardized):
+    def upload(self, left: np.ndarray, right: np.ndarray,
+               standardized: bool) -> tuple[np.ndarray, np.ndarray]:
         """Return the gray pair itself: the CPU stages standardize where they need to."""
         return left, right
 
-    def to_device(self, cnn):
+    def to_device(self, cnn: CnnConfidence) -> CnnConfidence:
         """Return `cnn` itself."""
         return cnn
 
-    def cnn_confidence(self, net, pair, max_disp, bf16, radius, scratch, seconds, cancel=None):
+    def cnn_confidence(self, net: Any, pair: tuple[np.ndarray, np.ndarray], max_disp: int,
+                       bf16: bool | str, radius: int, scratch: np.ndarray | None,
+                       seconds: dict[str, float],
+                       cancel: CancelFlag | None = None) -> CnnConfidence:
         """Return `cnn.confidence` (torch is imported with the CNN)."""
         from .cnn import confidence
         return CnnConfidence(*confidence(net, *pair, max_disp, bf16, seconds=seconds,
                                          cancel=cancel, radius=radius, scratch=scratch))
 
-    def cost_volume(self, pair, max_disp, cost_name, window, scale, dtype, out, cancel=None):
+    def cost_volume(self, pair: tuple[np.ndarray, np.ndarray], max_disp: int, cost_name: str,
+                    window: int, scale: int, dtype: np.dtype, out: np.ndarray | None,
+                    cancel: CancelFlag | None = None) -> CostVolume:
         """Return `cost.cost_volume` of the pair into `out`."""
         costs = cost.cost_volume(*pair, max_disp, cost_name, window, out, scale, dtype, cancel)
         return CostVolume(costs, cost.max_cost(cost_name, window) * scale)
 
-    def select_refine(self, volume, cnn, theta, c_hi, c_low, lr_check, plain):
+    def select_refine(self, volume: CostVolume, cnn: CnnConfidence, theta: float, c_hi: float,
+                      c_low: float, lr_check: bool,
+                      plain: np.ndarray | None) -> tuple[CostVolume, np.ndarray]:
         """Return the refined `volume` and the GCPs (`gcp.select`, `gcp.refine`)."""
         gcps = gcp.select(*cnn, theta, lr_check, plain)
         gcp.refine(volume.costs, gcps, cnn.cof_d, c_hi, c_low)
         return CostVolume(volume.costs, max(volume.top, c_hi)), gcps
 
-    def aggregate(self, volume, p1, p2, paths, out, cancel=None):
+    def aggregate(self, volume: CostVolume, p1: float, p2: float, paths: int,
+                  out: np.ndarray | None, cancel: CancelFlag | None = None) -> np.ndarray:
         """Return `sgm.aggregate` of the volume into `out`."""
         return sgm.aggregate(volume.costs, p1, p2, paths, out, cancel)
 
-    def disparity(self, total, cancel=None):
+    def disparity(self, total: np.ndarray, cancel: CancelFlag | None = None) -> np.ndarray:
         """Return `sgm.winners`' integer disparity."""
         return sgm.winners(total, False, False, cancel)[0]
 
-    def winners(self, total, subpixel, cancel=None):
+    def winners(self, total: np.ndarray, subpixel: bool,
+                cancel: CancelFlag | None = None) -> Winners:
         """Return `sgm.winners` with the left-right agreement, and the margin."""
         disp, consistent, s_best, s_second = sgm.winners(total, subpixel, True, cancel)
         return Winners(disp, consistent, margin(s_best, s_second))
 
-    def median(self, disparity):
+    def median(self, disparity: np.ndarray) -> np.ndarray:
         """Return cv2.medianBlur(disparity, 3)."""
         return cv2.medianBlur(disparity, 3)
 
-    def disparity_confidence(self, fit, winners, cnn, gcps):
+    def disparity_confidence(self, fit: ConfidenceFit, winners: Winners,
+                             cnn: CnnConfidence | None, gcps: np.ndarray | None) -> np.ndarray:
         """Return `fit` of `disparity_confidence.features`."""
         cof_c, cof_d = (None, None) if cnn is None else cnn[:2]
         return fit(features(*winners, cof_c, cof_d, gcps))
 
-    def to_host(self, array):
+    def to_host(self, array: np.ndarray) -> np.ndarray:
         """Return `array` itself."""
         return array
 
-    def costs_at(self, total, rows, cols, disparities):
+    def costs_at(self, total: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                 disparities: np.ndarray) -> np.ndarray:
         """Return `sgm.costs_at`."""
         return sgm.costs_at(total, rows, cols, disparities)
 
@@ -120,7 +136,9 @@ def backend(device: str) -> Backend:
     return CudaBackend(device)
 
 
-def cnn_confidence(net, left, right, max_disp, device='cpu', bf16=False, radius=0):
+def cnn_confidence(net: Any, left: np.ndarray, right: np.ndarray, max_disp: int,
+                   device: str = 'cpu', bf16: bool | str = False,
+                   radius: int = 0) -> CnnConfidence:
     """
     Return the host `CnnConfidence` of a pair on `device`: the CNN alone, for the tools.
 

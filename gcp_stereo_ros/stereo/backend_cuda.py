@@ -118,8 +118,8 @@ class CudaBackend:
             return disparity_confidence_cuda.calibrated(fit, planes)
 
     def to_host(self, array):
-        """Return a tensor as a numpy array (one download; None stays None)."""
-        return None if array is None else array.cpu().numpy()
+        """Return a tensor as a numpy array (one download)."""
+        return array.cpu().numpy()
 
     def costs_at(self, total, rows, cols, disparities):
         """Return total[rows[i], cols[i], disparities[i, j]], gathered on the GPU."""

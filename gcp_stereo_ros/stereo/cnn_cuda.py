@@ -56,8 +56,9 @@ def ieee_float32():
 
     cuDNN takes TF32 (a 10-bit mantissa) for float32 convolutions by default on GPUs of
     compute capability 8.0 or more, and torch's matrix products do where a program asked
-    for it (`torch.set_float32_matmul_precision`): on an H200 TF32 moved the confidence of
-    `bf16: false` by up to 1.3e-3 from the CPU's. bfloat16 work is not affected.
+    for it (`torch.set_float32_matmul_precision`), which moves the confidence of
+    `bf16: false` away from the CPU's (doc/notes/speed_report.md). bfloat16 work is not
+    affected.
     """
     backends = (torch.backends.cudnn.conv, torch.backends.cuda.matmul)
     before = [b.fp32_precision for b in backends]

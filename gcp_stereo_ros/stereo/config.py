@@ -8,6 +8,7 @@ cost's values from a preset ('default', or 'paper': the paper's values, nothing 
 import dataclasses
 from dataclasses import dataclass
 import re
+from typing import Any
 
 import numpy as np
 
@@ -18,14 +19,14 @@ from .sgm import PATHS
 # (doc/method.md); theta is on the calibrated scale (cnn.calibrated). plain_check and
 # gcp_plain_check are off for SAD: plain SGM on SAD costs is wrong across the textureless
 # Middlebury scenes (doc/published.md, doc/method.md).
-COST_DEFAULTS = {
+COST_DEFAULTS: dict[str, dict[str, Any]] = {
     'census': {'p1': 12.0, 'p2': 128.0, 'theta': 0.2, 'c_hi': 200.0, 'c_low': 2.0,
                'gcp_lr_check': True, 'gcp_plain_check': True, 'plain_check': 1.5},
     'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.2, 'c_hi': 5.0, 'c_low': 0.001,
             'gcp_lr_check': True, 'gcp_plain_check': False, 'plain_check': 0.0},
 }
 # The paper's values (Zhong et al., section 4): its theta is read on our calibrated scale.
-PAPER = {
+PAPER: dict[str, dict[str, Any]] = {
     'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3,
                'gcp_lr_check': False, 'gcp_plain_check': False},
     'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001,
@@ -33,9 +34,10 @@ PAPER = {
 }
 # Every invalidation off (stereo.postprocess). The paper published every integer WTA
 # disparity: its preset has this and no sub-pixel fit.
-UNFILTERED = {'valid_window': False, 'lr_check': False, 'plain_check': 0.0,
-              'uniqueness_ratio': 0.0, 'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0,
-              'min_confidence': 0.0, 'background_ratio': 0.0}
+UNFILTERED: dict[str, Any] = {
+    'valid_window': False, 'lr_check': False, 'plain_check': 0.0, 'uniqueness_ratio': 0.0,
+    'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0, 'min_confidence': 0.0,
+    'background_ratio': 0.0}
 PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False, 'cnn_filter_radius': 0}
          for cost, values in PAPER.items()}
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
@@ -45,7 +47,7 @@ MAX_COST_PARAM = 10000.0  # P1, P2, c_hi, c_low: far above any useful value of e
 # The valid values of each number field, both ends included: the one source of truth,
 # which the node's parameter descriptors are made from (ros/params.py). The window's
 # range depends on the cost (cost.WINDOWS).
-RANGES = {
+RANGES: dict[str, tuple[int, int] | tuple[float, float]] = {
     'max_disp': (1, 1024),
     'p1': (0.0, MAX_COST_PARAM),
     'p2': (0.0, MAX_COST_PARAM),
@@ -64,21 +66,22 @@ RANGES = {
     'memory_limit_mb': (64, 1 << 20),
 }
 # The only values of these fields.
-CHOICES = {'cost': cost_mod.COSTS, 'paths': PATHS, 'downsample': DOWNSAMPLE, 'bf16': BF16}
+CHOICES: dict[str, tuple[Any, ...]] = {'cost': cost_mod.COSTS, 'paths': PATHS,
+                                       'downsample': DOWNSAMPLE, 'bf16': BF16}
 # The fields the CNN's outputs (StereoResult cof_c, cof_d, cof_dr) depend on: a run may reuse
-# another's outputs (StereoPipeline's `confidence`) only where these are the same.
+# another's outputs (`StereoPipeline.__call__`'s `cnn`) only where these are the same.
 CNN_FIELDS = ('weights', 'device', 'bf16', 'max_disp', 'downsample', 'cnn_filter_radius')
 FLAGS = ('use_gcp', 'gcp_lr_check', 'gcp_plain_check', 'subpixel', 'median', 'valid_window',
          'lr_check')
 DEVICE = re.compile(r'cpu|cuda(:\d+)?')
 
 
-def number_text(value):
+def number_text(value: float) -> str:
     """Return `value` as the range messages and the docs write it: 1e6 as 1000000."""
     return str(int(value)) if float(value).is_integer() else f'{value:g}'
 
 
-def range_text(low, high):
+def range_text(low: float, high: float) -> str:
     """Return the inclusive range [low, high] as text, e.g. '[0, 10000]'."""
     return f'[{number_text(low)}, {number_text(high)}]'
 
@@ -89,110 +92,88 @@ class StereoConfig:
     Every setting of the stereo pipeline, checked when the config is made.
 
     Make one with keywords (``StereoConfig(max_disp=64, paths=8)``), from a preset
-    (`for_cost`), or from another (`replace`, or ``dataclasses.replace``). A value out of
-    its range raises ValueError naming every bad field, its valid range and the value
-    given. The node's parameters (``ros/params.py``) map onto these fields and take their
-    ranges from here. Costs (``p1``, ``p2``, ``c_hi``, ``c_low``) are in the units of the
-    matching cost: differing bits for Census (0 .. window**2 - 1), image standard deviations
-    for SAD (0 .. 3.2); disparities are in pixels of the input images.
+    (`for_cost`) or from another (`replace`); a value out of its range raises ValueError
+    naming every bad field, its range and the value given. Costs are in the matching cost's
+    units: differing bits for Census (0 .. window**2 - 1), image standard deviations for SAD
+    (0 .. 3.2). Sizes and disparities are in px of the input images, also with
+    ``downsample``. The node's parameters map onto these fields (doc/parameters.md); what
+    each does and how its default was chosen: doc/method.md, doc/published.md.
 
     Attributes
     ----------
     cost : str
-        Matching cost: ``'census'`` (Hamming distance of Census bit strings) or ``'sad'``
-        (mean absolute difference of standardized intensities).
+        Matching cost: ``'census'`` or ``'sad'``; default 'census'.
     window : int
-        Matching window side in pixels, odd: census in [3, 11] (its bits fill two 64-bit
-        words), sad in [3, 31].
+        Matching window side, px, odd: census in [3, 11], sad in [3, 31]; default 9.
     max_disp : int
-        Disparities searched, 0 .. max_disp - 1 px of the input images; in [1, 1024].
+        Disparities searched, 0 .. max_disp - 1 px; in [1, 1024], default 128.
     p1 : float
-        SGM penalty in cost units for a 1 px disparity change between neighbours; in
-        [0, 10000].
+        SGM penalty of a 1 px disparity step, cost units; in [0, 10000]: census 12, sad 0.02.
     p2 : float
-        SGM penalty in cost units for a larger disparity jump; in [0, 10000], and >= p1.
+        SGM penalty of a larger jump, cost units; in [0, 10000], >= p1: census 128, sad 0.5.
     paths : int
-        SGM path directions: 4, 8 or 16.
+        SGM path directions: 4, 8 or 16; default 16.
     use_gcp : bool
-        Refine the cost volume with the CNN's ground control points (GCPs).
+        Refine the cost volume with the CNN's ground control points (GCPs); default True.
     theta : float
-        GCP threshold on the calibrated CNN confidence, the probability that the pixel's
-        CNN disparity is within 1 px of the truth; in [0, 1].
+        GCP threshold on the calibrated CNN confidence, P(CNN disparity within 1 px);
+        in [0, 1], default 0.2.
     c_hi : float
-        Cost in cost units given to every disparity of a pixel that is not a GCP (where
-        use_gcp); in [0, 10000].
+        Cost of every disparity of a non-GCP pixel, cost units; in [0, 10000]: census 200,
+        sad 5.
     c_low : float
-        Cost in cost units given to a GCP at its CNN disparity; in [0, 10000], and <= c_hi.
+        Cost of a GCP at its CNN disparity, cost units; in [0, 10000], <= c_hi: census 2,
+        sad 0.001.
     gcp_lr_check : bool
-        GCPs only where the right view's CNN disparity agrees within 1 px (not in the
-        paper).
+        GCPs only where the right view's CNN disparity agrees within 1 px; default True.
     gcp_plain_check : bool
-        GCPs only where the CNN disparity is at most 1 px above the one SGM finds on the
-        same costs without the GCPs (plain SGM, as for plain_check; not in the paper).
-        Each cost has its own default: census True, sad False.
+        GCPs only where the CNN disparity is at most 1 px above plain SGM's (the same
+        costs without GCPs); census True, sad False.
     cnn_filter_radius : int
-        Pixels: the CNN confidence volume is guided-filtered (the left image as the guide,
-        windows of 2 r + 1 px) before the GCPs' disparities and confidences are taken from
-        it (``stereo.cnn_filter``; not in the paper); in [0, 8], 0 = off. Full-size pixels:
-        with downsample f the filter runs on the matching grid with r / f, at least 1
-        (`matched_radius`). Each radius has its own calibration beside the weights.
+        Guided filter of the CNN confidence volume, px (windows of 2 r + 1); in [0, 8],
+        0 = off, default 4.
     weights : str
-        Path of the CNN weights file; ``''`` is the weights shipped with the package.
+        CNN weights file, ``''`` for the weights shipped with the package; default ''.
     device : str
-        ``'cpu'``, or ``'cuda'`` / ``'cuda:N'`` to run the whole pipeline on that GPU.
+        ``'cpu'``, or ``'cuda'`` / ``'cuda:N'``: the whole pipeline on that GPU; default 'cpu'.
     bf16 : bool or str
-        bfloat16 CNN descriptors: True, False, or ``'auto'`` (on where native: CPUs with
-        avx512_bf16 or AMX, CUDA). 3-4x faster CNN, error rates within 0.061 point.
+        bfloat16 CNN descriptors: True, False or ``'auto'`` (where native); default 'auto'.
     subpixel : bool
-        Parabola fit of the summed costs around the winner for sub-pixel disparities.
+        Parabola fit of the summed costs for sub-pixel disparities; default True.
     median : bool
-        3x3 median filter on the disparity.
+        3x3 median filter on the disparity; default False.
     valid_window : bool
-        Invalidate where the search was cut short: within window // 2 px of the image's
-        edge, and left of x = max_disp - 1 where the winner is at the end of its range.
+        Invalidate where the search was cut short (image edge, left band); default True.
     lr_check : bool
-        Invalidate where the right view's winner is more than 1 px from the disparity.
+        Invalidate where the right view's winner is more than 1 px off; default False.
     plain_check : float
-        Pixels: with use_gcp, invalidate where the disparity is more than this above the
-        one that SGM finds on the same costs without the GCPs (plain SGM, a second opinion
-        that needs no CNN: a near obstacle the GCPs alone put there); in [0, 1024], 0 = off
-        (full-size pixels: check / f on the matching grid). Costs a second SGM pass. Each
-        cost has its own default: census 1.5, sad 0.
+        With GCPs, invalidate where the disparity is more than this above plain SGM's, px;
+        in [0, 1024], 0 = off: census 1.5, sad 0.
     uniqueness_ratio : float
-        Percent, OpenCV's uniquenessRatio: invalidate where a disparity more than 1 px
-        from the winner has a summed SGM cost less than this many percent above the
-        winner's; in [0, 99], 0 = off.
+        OpenCV's uniquenessRatio on the summed SGM costs, percent; in [0, 99], 0 = off,
+        default 1.
     speckle_size : int
-        Pixels: invalidate connected regions of at most this many pixels (neighbours
-        within speckle_range), as stereo_image_proc; in [0, 1000000], 0 = off. Full-size
-        pixels: with downsample f the test runs on the matching grid with size // f^2.
+        Invalidate connected regions of at most this many px; in [0, 1000000], 0 = off,
+        default 100.
     speckle_range : int
-        Pixels of disparity: the largest difference of two neighbours of one speckle
-        region; in [0, 1024] (full-size pixels: range / f on the matching grid).
+        Largest disparity difference of two neighbours in one speckle region, px;
+        in [0, 1024], default 4.
     min_depth : float
-        Metres: invalidate depths below this (applied only with a camera model); in
-        [0, 1000000], 0 = no limit.
+        Invalidate depths below this, m (with a camera model); in [0, 1000000], 0 = no
+        limit, default 0.3.
     max_depth : float
-        Metres: invalidate depths beyond this (with a camera model); in [0, 1000000],
-        0 = no limit, else above min_depth.
+        Invalidate depths beyond this, m (with a camera model); in [0, 1000000], above
+        min_depth or 0 = no limit; default 0.
     min_confidence : float
-        Invalidate where the calibrated probability that the disparity is within 3 px of
-        the truth (`StereoResult.disparity_confidence`) is below this, where the pixel's background
-        fits (`background_ratio`); in [0, 1], 0 = off.
+        Invalidate where the disparity confidence, P(within 3 px), is below this and the
+        pixel's background fits; in [0, 1], 0 = off, default 0.9.
     background_ratio : float
-        A pixel below min_confidence goes only where its background, the smaller disparity
-        of the nearest pixels left and right in its row that stay, has a summed SGM cost at
-        most this many times the winner's: a low-confidence object whose costs rule out
-        the background behind it is kept; in [0, 100]: 0 = off (every pixel below
-        min_confidence goes), else at least 1.
+        A pixel below min_confidence goes only where its row's background has a summed SGM
+        cost at most this times the winner's; in [0, 100], 0 = off, else >= 1; default 1.1.
     downsample : int
-        Match at 1/downsample of the resolution (1, 2 or 4): both images area-binned,
-        max_disp / downsample disparities; outputs at full size, disparities in
-        full-size pixels.
+        Match at 1 / downsample of the resolution: 1, 2 or 4; default 1.
     memory_limit_mb : int
-        MiB: a pair whose processing would need more memory is refused with ValueError
-        (see `memory.memory_bytes`); in [64, 1048576]. The default 3 GiB keeps the node,
-        with its own 0.4-0.6 GB, under half of an 8 GB computer.
+        A pair that would need more memory is refused, MiB; in [64, 1048576], default 3072.
 
     """
 
@@ -211,14 +192,11 @@ class StereoConfig:
     cnn_filter_radius: int = 4
     weights: str = ''
     device: str = 'cpu'
-    # 'auto': see cnn.bf16_native; on the validation frames the defaults' error rates moved
-    # by at most 0.061 point (doc/speed.md).
     bf16: bool | str = 'auto'
     subpixel: bool = True
     median: bool = False
-    # Invalidation (stereo.postprocess; doc/published.md), chosen on the validation
-    # frames. The left-right check is off: on the validation frames 89 % of the pixels it
-    # rejects are right; its agreement is a confidence feature instead.
+    # Invalidation (stereo.postprocess), chosen on the validation frames (doc/published.md;
+    # why the left-right check is off: "The left-right check is off by default" there).
     valid_window: bool = True
     lr_check: bool = False
     plain_check: float = COST_DEFAULTS['census']['plain_check']
@@ -232,14 +210,14 @@ class StereoConfig:
     downsample: int = 1
     memory_limit_mb: int = 3072
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         """Raise ValueError naming every field whose value is invalid (see `_problems`)."""
         found = self._problems()
         if found:
             raise ValueError('; '.join(found))
 
     @classmethod
-    def for_cost(cls, cost, preset='default', **overrides):
+    def for_cost(cls, cost: str, preset: str = 'default', **overrides: Any) -> 'StereoConfig':
         """
         Return the config with the `preset`'s values for `cost`, then `overrides` applied.
 
@@ -254,11 +232,11 @@ class StereoConfig:
             raise ValueError(f'cost must be one of {tuple(COST_DEFAULTS)}, got {cost!r}')
         return cls(**{'cost': cost, **PRESETS[preset][cost], **overrides})
 
-    def replace(self, **changes):
+    def replace(self, **changes: Any) -> 'StereoConfig':
         """Return a copy with the fields `changes` changed (``dataclasses.replace``)."""
         return dataclasses.replace(self, **changes)
 
-    def _problems(self):
+    def _problems(self) -> list[str]:
         """
         Return a sentence for each invalid value, [] if all are valid.
 
@@ -306,22 +284,22 @@ class StereoConfig:
         return found
 
     @property
-    def matched_radius(self):
+    def matched_radius(self) -> int:
         """Return the CNN filter's radius on the matching grid: r / downsample, >= 1 (0: off)."""
         return max(1, self.cnn_filter_radius // self.downsample) if self.cnn_filter_radius else 0
 
     @property
-    def plain_sgm(self):
+    def plain_sgm(self) -> bool:
         """Whether plain SGM runs: with GCPs, for gcp_plain_check or plain_check."""
         return self.use_gcp and bool(self.gcp_plain_check or self.plain_check)
 
     @property
-    def matched_disp(self):
+    def matched_disp(self) -> int:
         """Return the disparities searched at the matching resolution: max_disp / downsample."""
         return -(-self.max_disp // self.downsample)
 
 
-def _is_number(value, integer):
+def _is_number(value: object, integer: bool) -> bool:
     """Whether `value` is a finite number (an integer if `integer`); booleans are not."""
     if isinstance(value, (bool, np.bool_)):
         return False
@@ -330,7 +308,7 @@ def _is_number(value, integer):
     return not integer and isinstance(value, (float, np.floating)) and bool(np.isfinite(value))
 
 
-def _same(value, choice):
+def _same(value: object, choice: object) -> bool:
     """Whether `value` is `choice`, and of its kind: True is not 1, 2.0 is not 2."""
     flag = isinstance(value, (bool, np.bool_))
     if flag or isinstance(choice, bool):

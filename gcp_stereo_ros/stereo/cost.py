@@ -16,8 +16,7 @@ words), cost = popcount(left XOR right), in [0, window**2 - 1] = [0, 80] for 9x9
 
 SAD: mean absolute difference over the window of the per-image standardized intensities
 (each image minus its mean, divided by its std), i.e. in units of image standard
-deviations, truncated at 3.2. That is the paper's range [0, 3.2] without rescaling: on the
-shared pairs the untruncated mean exceeds 3.2 in well under 1% of valid cells.
+deviations, truncated at 3.2: the paper's range [0, 3.2] without rescaling.
 """
 from numba import njit, prange
 import numpy as np

@@ -58,9 +58,7 @@ PIXEL_BYTES = 80
 # per pixel), and of one strip eight layer outputs' worth: a layer's input and output, the
 # descriptors copied out, oneDNN's scratchpad (which it keeps for the largest so far), and
 # four for the heap, which keeps the blocks freed within a pair for reuse
-# (mmap_large_arrays) rather than unmapping them, so where a new block lands varies: at
-# 741x500 fp32 the CNN's peak varied by up to 2.3 strips between pairs (20 pairs measured;
-# with four layers in all, a peak passed the bound in CI).
+# (mmap_large_arrays) rather than unmapping them, so where a new block lands varies.
 CNN_PIXEL_BYTES = 28
 # With cnn_filter_radius, per pixel while the CNN runs: the guide, its window means and
 # variance and their temporaries (cnn_filter.guide_stats), float32.
@@ -71,8 +69,7 @@ STRIP_LAYERS = 8
 FULL_PIXEL_BYTES = 32
 # The invalidation and the confidence, per full-size pixel, while the volumes are kept: the
 # outputs alive then (35, plain SGM's disparity for plain_check included) and the features
-# and their fit (121, measured with tracemalloc at 741x500; the invalidation after them,
-# with background_ratio, 35 at 1242x375).
+# and their fit (121; the invalidation after them, with background_ratio, 35).
 POST_PIXEL_BYTES = 156
 
 
@@ -151,14 +148,10 @@ def mmap_large_arrays():
     Make glibc's malloc serve blocks of MMAP_BYTES or more with mmap, in this whole process.
 
     For long-running processes (the node, the bag tool), with `StereoPipeline.release` at
-    idle. By default glibc raises its mmap threshold up to 32 MiB after a large block is
-    freed and serves blocks below it from heaps that keep freed memory: measured at 741x500,
-    100 MB more after the arrays were let go and steady peaks 30 % higher. A fixed threshold
-    of 1 MiB made RSS follow the arrays alive, but every block of a frame was then fresh
-    pages (a page fault per 4 KiB): a KITTI pair took 1.3 s instead of 0.74 s (CNN 0.74 s
-    instead of 0.35 s; doc/speed.md). With MMAP_BYTES the blocks freed within a pair (a
-    CNN strip's layer outputs, 24 per pair) are reused within it, the volumes are mmap'd, and
-    each pair ends by giving the freed heap memory back (malloc_trim), so RSS between pairs
-    still follows the arrays alive.
+    idle. glibc's default raises its mmap threshold up to 32 MiB after a large block is
+    freed and keeps freed blocks below it in its heaps; a fixed threshold of MMAP_BYTES keeps
+    the blocks freed within a pair (a CNN strip's layer outputs) for reuse within it, mmaps
+    the volumes, and each pair ends by giving the freed heap memory back (malloc_trim), so
+    RSS between pairs follows the arrays alive (measured: doc/notes/implementation_history.md).
     """
     call_glibc('mallopt', -3, MMAP_BYTES)  # M_MMAP_THRESHOLD

@@ -10,10 +10,12 @@ bounded by `memory.memory_bytes`.
 from dataclasses import dataclass
 from functools import partial
 import time
+from typing import Any
 
 import numpy as np
 
 from .backend import backend
+from .cancel import CancelFlag
 from .cnn_filter import scratch_size
 from .config import StereoConfig
 from .images import bin_area, gray_pair, subsample, upsample
@@ -22,9 +24,8 @@ from .postprocess import invalidate
 from .stages import Backend, CnnConfidence
 from .weights import confidence_fit
 
-# The paths of plain SGM for `plain_check` and `gcp_plain_check` (horizontal and
-# vertical): on the validation frames as good a second opinion as 16, in a quarter of the
-# time (doc/published.md).
+# The paths of plain SGM for `plain_check` and `gcp_plain_check`: horizontal and vertical
+# (chosen on the validation frames: doc/published.md, "Plain SGM as a second opinion").
 PLAIN_PATHS = 4
 
 
@@ -48,17 +49,17 @@ class StereoResult:
     Attributes
     ----------
     disparity : numpy.ndarray
-        float32 px in [0, max_disp - 1], sub-pixel with ``subpixel``; NaN (never 0) where
-        the invalidation (`postprocess.invalidate`) rejected the winner.
+        float32 (H, W), px in [0, max_disp - 1], sub-pixel with ``subpixel``; NaN (never 0)
+        where the invalidation (`postprocess.invalidate`) rejected the winner.
     gcp : numpy.ndarray or None
-        bool: the ground control points; None without ``use_gcp``.
+        bool (H, W): the ground control points; None without ``use_gcp``.
     cof_c : numpy.ndarray or None
-        float32 in [0, 1]: the CNN confidence, P(cof_d within 1 px of the truth), which
-        theta cuts; None without ``use_gcp``.
+        float32 (H, W) in [0, 1]: the CNN confidence, P(cof_d within 1 px of the truth),
+        which theta cuts; None without ``use_gcp``.
     cof_d : numpy.ndarray or None
-        int32 px: the CNN's best disparity; None without ``use_gcp``.
+        int32 (H, W), px: the CNN's best disparity; None without ``use_gcp``.
     cof_dr : numpy.ndarray or None
-        int32 px: the right view's CNN disparity at each right pixel; None without
+        int32 (H, W), px: the right view's CNN disparity at each right pixel; None without
         ``use_gcp``.
     seconds : dict
         Wall time in seconds per stage that ran, in order: 'downsample', 'upload' (GPU),
@@ -66,13 +67,13 @@ class StereoResult:
         'refine', 'sgm', 'wta', 'disparity_confidence', 'download' (GPU), 'invalidate',
         'upsample'.
     disparity_confidence : numpy.ndarray or None
-        float32 in [0, 1]: P(the published disparity within 3 px of the truth), 0 where the
-        disparity is NaN; None where no fit ships for the method and weights.
+        float32 (H, W) in [0, 1]: P(the published disparity within 3 px of the truth), 0
+        where the disparity is NaN; None where no fit ships for the method and weights.
     consistent : numpy.ndarray
-        bool: the right view's winner at x - d is within 1 px of d (x - d >= 0), whether
-        or not ``lr_check`` invalidates by it.
+        bool (H, W): the right view's winner at x - d is within 1 px of d (x - d >= 0),
+        whether or not ``lr_check`` invalidates by it.
     margin : numpy.ndarray
-        float32 in [0, 1]: the SGM cost margin 1 - S(winner) / S(rival).
+        float32 (H, W) in [0, 1]: the SGM cost margin 1 - S(winner) / S(rival).
 
     """
 
@@ -101,8 +102,8 @@ class StereoPipeline:
     per 4 KiB); `release` lets them go. So one pipeline serves one thread at a time.
     """
 
-    def __init__(self, config: StereoConfig | None = None, net=None,
-                 _backend: Backend | None = None):
+    def __init__(self, config: StereoConfig | None = None, net: Any = None,
+                 _backend: Backend | None = None) -> None:
         """
         Make a pipeline for `config` (default `StereoConfig()`); `net`: a loaded CNN.
 
@@ -130,7 +131,7 @@ class StereoPipeline:
         self.backend.release()
 
     @property
-    def net(self):
+    def net(self) -> Any:
         """
         Return the CNN, loaded on first use, on the config's device.
 
@@ -143,7 +144,8 @@ class StereoPipeline:
         return self._net
 
     def __call__(self, left: np.ndarray, right: np.ndarray, cnn: CnnConfidence | None = None,
-                 cancel=None, camera: tuple[float, float] | None = None,
+                 cancel: CancelFlag | None = None,
+                 camera: tuple[float, float] | None = None,
                  timed: bool = False) -> StereoResult:
         """
         Return the `StereoResult` of one rectified pair.
@@ -193,7 +195,7 @@ class StereoPipeline:
         seconds: dict[str, float] = {}
         t = time.perf_counter()
 
-        def lap(stage):
+        def lap(stage: str | None) -> None:
             """Record the time since the last lap as `stage` (None: only restart the clock)."""
             nonlocal t
             if timed:
@@ -221,7 +223,8 @@ class StereoPipeline:
         # Kept buffers of another shape or type are let go now, before anything is allocated.
         kept = b.buffers(left.shape + (nd,), dtype, filter_size(left.shape, nd, radius))
         pair = b.upload(left, right, cfg.use_gcp or cfg.cost == 'sad')
-        on_device = b.to_device(cnn) if cfg.use_gcp and cnn is not None else None
+        on_device: CnnConfidence | None = (b.to_device(cnn) if cfg.use_gcp and cnn is not None
+                                           else None)
         lap(None if b.host else 'upload')
         if fresh:
             on_device = b.cnn_confidence(self.net, pair, nd, cfg.bf16, radius, kept.scratch,
@@ -237,6 +240,7 @@ class StereoPipeline:
             plain = b.disparity(total, cancel)
             lap('plain_sgm')
         if cfg.use_gcp:
+            assert on_device is not None  # given (cnn) or computed (fresh)
             volume, gcp = b.select_refine(volume, on_device, cfg.theta, fixed(cfg.c_hi),
                                           fixed(cfg.c_low), cfg.gcp_lr_check,
                                           plain if cfg.gcp_plain_check else None)
@@ -251,22 +255,22 @@ class StereoPipeline:
         if self.fit is not None:
             sure = b.disparity_confidence(self.fit, won, on_device, gcp)
             lap('disparity_confidence')
-        disp, consistent, m, sure, gcp, plain = (
-            b.to_host(a) for a in (*won, sure, gcp, plain))
-        if fresh:
+        disp, consistent, m = (b.to_host(a) for a in won)
+        sure, gcp, plain = (None if a is None else b.to_host(a) for a in (sure, gcp, plain))
+        if fresh and on_device is not None:
             cnn = CnnConfidence(*(b.to_host(a) for a in on_device))
         lap(None if b.host else 'download')
         invalidate(disp, consistent, m, cfg, camera, sure, partial(b.costs_at, total), plain)
         if sure is not None:
             sure[np.isnan(disp)] = 0.0
         lap('invalidate')
-        cof_c, cof_d, cof_dr = cnn if cfg.use_gcp else (None,) * 3
+        cof_c, cof_d, cof_dr = cnn if cfg.use_gcp and cnn is not None else (None,) * 3
         if f > 1:  # back to full size, disparities in full-size pixels
-            disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)
-                                   for a in (disp, cof_d, cof_dr))
-            disp, consistent, m, gcp, cof_c, cof_d, cof_dr, sure = (
-                None if a is None else upsample(a, f, shape)
-                for a in (disp, consistent, m, gcp, cof_c, cof_d, cof_dr, sure))
+            disp, consistent, m = (upsample(a, f, shape)
+                                   for a in (disp * disp.dtype.type(f), consistent, m))
+            cof_d, cof_dr = (None if a is None else a * a.dtype.type(f) for a in (cof_d, cof_dr))
+            gcp, cof_c, cof_d, cof_dr, sure = (None if a is None else upsample(a, f, shape)
+                                               for a in (gcp, cof_c, cof_d, cof_dr, sure))
             lap('upsample')
         call_glibc('malloc_trim', 0)  # the heap blocks this pair freed (see mmap_large_arrays)
         return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds, sure, consistent, m)

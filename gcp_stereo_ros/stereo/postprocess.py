@@ -6,8 +6,7 @@ What of the winner-takes-all disparity to publish: the invalidation; ROS-free.
   (the matching window leaves the image), and in the left band where fewer than max_disp
   candidates exist (x < max_disp - 1: only d <= x was searched), where the winner lies at
   the end of its range (d >= x - 1, so the minimum may lie beyond the range); a winner
-  inside its range is kept (on the KITTI validation frames 5.8 % of the band's pixels
-  are wrong, 4.2 % of the others: doc/published.md);
+  inside its range is kept;
 - that fail the left-right check (`lr_check`: the right view's winner at x - d is more than
   1 px from d);
 - that fail the uniqueness test (`uniqueness_ratio` u, OpenCV's uniquenessRatio): invalid
@@ -25,14 +24,13 @@ What of the winner-takes-all disparity to publish: the invalidation; ROS-free.
   of at most `speckle_size` pixels, neighbours within `speckle_range` px of each other;
 - more than `plain_check` px nearer than plain SGM, the same costs aggregated without the
   GCPs: a second opinion without the CNN, last, so that the tests before it do not see the
-  gaps it leaves. Most of the phantom obstacles the GCPs make in grass and bushes go; where
-  plain SGM is as near (a thin pole, a cyclist that the KITTI ground truth misses), the
-  pixel stays (doc/published.md).
-A value of 0 (False) turns each off. The CPU and the CUDA pipeline give the same inputs
-(`sgm.winners`, `sgm_cuda.winners`), so both apply this identically. With `downsample` f
-everything here runs on the matching grid, 1 / f of the images, before the result is blown
-up to full size: the sizes and disparities the parameters give in full-size pixels are
-scaled to it (a speckle of `speckle_size` / f^2 matching pixels, `speckle_range` / f).
+  gaps it leaves.
+A value of 0 (False) turns each off; why each test and its default: doc/published.md. The
+CPU and the CUDA pipeline give the same inputs (`sgm.winners`, `sgm_cuda.winners`), so
+both apply this identically. With `downsample` f everything here runs on the matching
+grid, 1 / f of the images, before the result is blown up to full size: the sizes and
+disparities the parameters give in full-size pixels are scaled to it (a speckle of
+`speckle_size` / f^2 matching pixels, `speckle_range` / f).
 """
 import cv2
 from numba import njit
@@ -160,7 +158,7 @@ def background_fits(disp, low, costs, cfg):
     """
     rows, cols, at = _lookups(disp, backgrounds(disp, low), cfg.matched_disp - 1)
     s = costs(rows, cols, at).astype(np.float64)
-    background = np.minimum(np.minimum(s[:, 0], s[:, 1]), s[:, 2])  # not .min(1): 10x slower
+    background = np.minimum(np.minimum(s[:, 0], s[:, 1]), s[:, 2])  # faster than .min(1)
     kept = background > cfg.background_ratio * s[:, 3]
     fits = low.copy()
     fits[rows[kept], cols[kept]] = False

@@ -1,32 +1,22 @@
 """
 CUDA twin of sgm.py: path costs, their sum S and the winner-takes-all in GPU memory.
 
-The layout of libSGM (Hernandez-Juarez et al. 2016, "Embedded real-time stereo estimation via
-Semi-Global Matching on the GPU"): a group of `lanes(D)` threads (a warp from D = 17 on, at
-least 8) walks one path, lane l holding disparities d = l, l + lanes, ...; so neighbouring
-lanes read neighbouring d of the (H, W, D) volume, and a warp's load of 32 uint16 costs
-touches two 32-byte sectors (four for float32) where one thread per path touched 32. At each
-step a lane reads L_r(p - r, d - 1) and L_r(p - r, d + 1) of its neighbours and the partial
-minima of all lanes from shared memory, double-buffered by step parity: one barrier a step.
-The arithmetic is float32 for both volume types (uint16 sums stay below 2^17: exact), each
-L_r computed as (C - min L_r(p - r)) + the best predecessor term: the order in which the
-CPU's compiler evaluates `sgm._path_step` (fastmath), so float32 path costs round alike
+libSGM's layout (Hernandez-Juarez et al. 2016): a group of `lanes(D)` threads walks one
+path, lane l holding disparities d = l, l + lanes, ..., so a warp's loads of the (H, W, D)
+volume are coalesced; at each step a lane reads its neighbours' L_r(p - r, d +- 1) and the
+lanes' partial minima from shared memory, double-buffered by step parity (one barrier a
+step). The arithmetic is float32 for both volume types (uint16 sums stay below 2^17:
+exact), each L_r computed as (C - min L_r(p - r)) + the best predecessor term, the order
+in which the CPU's compiler evaluates `sgm._path_step`, so float32 path costs round alike
 (the simulator checks catch it if that order changes).
 
-All directions run in one launch (a block holds `gpu.THREADS // lanes` paths of one direction),
-so at KITTI size 16 paths give ~29,000 paths, ~930,000 threads, more than a GPU holds. S must
-equal the CPU's float32 sums, which add the L_r in `sgm.summation_order`: float addition is
-not associative, so concurrent directions cannot add into S as they go (atomics would add in
-whatever order they arrive). Each direction writes its own L_r volume instead (the first into
-S itself), and a second kernel adds them in that order: paths - 1 extra volumes of the volume's
-type (1.8 GB for a uint16 KITTI volume at D = 128 and 16 paths) and about 2 (paths - 1) volumes
-more memory traffic than a sum in place, for a launch that fills the GPU. The penalties and
-limits are the CPU's (`sgm.penalties`).
-
-The WTA, with the same lanes across the d of one pixel: the first minimum and the second cost
-outside best +- 1 by shared-memory reductions, the sub-pixel fit of `sgm.parabola_offset`; the
-left-right check reads the right view's winners, which a kernel of their own finds first with
-lanes along a diagonal of the volume (see `_right_winners`), so that also reads coalesced.
+All directions run in one launch (a block holds `gpu.THREADS // lanes` paths of one
+direction). S must equal the CPU's float32 sums, added in
+`sgm.summation_order`, so each direction writes its own L_r volume (the first into S) and
+a second kernel adds them in that order: paths - 1 volumes of working memory. The WTA puts
+the same lanes across the d of one pixel; the left-right check reads the right view's
+winners, found first by `_right_winners`. Penalties and limits are the CPU's
+(`sgm.penalties`). Layout, sizes and counts: doc/speed.md, "SGM and WTA on the GPU".
 """
 from numba import cuda, float32, int32, njit
 import numpy as np

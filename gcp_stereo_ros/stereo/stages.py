@@ -11,6 +11,7 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
+from .cancel import CancelFlag
 from .disparity_confidence import ConfidenceFit
 
 Array = Any  # a numpy array on the CPU, a torch tensor on a GPU
@@ -58,7 +59,7 @@ class Backend(Protocol):
     host: bool  # True: the stages run on the host, there is nothing to upload or download
     torch_device: Any  # where the CNN runs: 'cpu' or a torch.device
 
-    def buffers(self, shape: tuple, dtype: np.dtype, scratch: int) -> Buffers:
+    def buffers(self, shape: tuple[int, ...], dtype: np.dtype, scratch: int) -> Buffers:
         """Return the kept buffers for volumes `shape` of `dtype`, letting go the others."""
 
     def keep(self, buffers: Buffers) -> None:
@@ -76,43 +77,45 @@ class Backend(Protocol):
     def to_device(self, cnn: CnnConfidence) -> CnnConfidence:
         """Return host CNN outputs on the device."""
 
-    def cnn_confidence(self, net, pair, max_disp: int, bf16, radius: int, scratch,
-                       seconds: dict, cancel=None) -> CnnConfidence:
+    def cnn_confidence(self, net: Any, pair: Any, max_disp: int, bf16: bool | str, radius: int,
+                       scratch: Array | None, seconds: dict[str, float] | None,
+                       cancel: CancelFlag | None = None) -> CnnConfidence:
         """
         Return the CNN confidence of the pair.
 
         `seconds` gains 'cnn' and 'confidence' (a GPU waits for them; None: not timed).
         """
 
-    def cost_volume(self, pair, max_disp: int, cost: str, window: int, scale: int,
-                    dtype: np.dtype, out, cancel=None) -> CostVolume:
+    def cost_volume(self, pair: Any, max_disp: int, cost: str, window: int, scale: int,
+                    dtype: np.dtype, out: Array | None,
+                    cancel: CancelFlag | None = None) -> CostVolume:
         """Return the matching cost volume (`cost.cost_volume`), into `out` if not None."""
 
     def select_refine(self, volume: CostVolume, cnn: CnnConfidence, theta: float,
                       c_hi: float, c_low: float, lr_check: bool,
-                      plain) -> tuple[CostVolume, Array]:
+                      plain: Array | None) -> tuple[CostVolume, Array]:
         """Refine `volume` in place by the GCPs `gcp.select` picks; return it and the GCPs."""
 
-    def aggregate(self, volume: CostVolume, p1: float, p2: float, paths: int, out,
-                  cancel=None) -> Array:
+    def aggregate(self, volume: CostVolume, p1: float, p2: float, paths: int,
+                  out: Array | None, cancel: CancelFlag | None = None) -> Array:
         """Return the summed SGM path costs of `volume` (`sgm.aggregate`) into `out`."""
 
-    def disparity(self, total, cancel=None) -> Array:
+    def disparity(self, total: Array, cancel: CancelFlag | None = None) -> Array:
         """Return the integer winner-takes-all disparity of summed costs, float32 (H, W)."""
 
-    def winners(self, total, subpixel: bool, cancel=None) -> Winners:
+    def winners(self, total: Array, subpixel: bool, cancel: CancelFlag | None = None) -> Winners:
         """Return the winners of summed costs, with the left-right agreement and margin."""
 
-    def median(self, disparity) -> Array:
+    def median(self, disparity: Array) -> Array:
         """Return the 3x3 median of the disparity, as cv2.medianBlur."""
 
     def disparity_confidence(self, fit: ConfidenceFit, winners: Winners,
-                             cnn: CnnConfidence | None, gcp) -> Array:
+                             cnn: CnnConfidence | None, gcp: Array | None) -> Array:
         """Return the disparity confidence (`disparity_confidence.features`, then `fit`)."""
 
-    def to_host(self, array) -> np.ndarray | None:
-        """Return `array` as a numpy array (None stays None)."""
+    def to_host(self, array: Array) -> np.ndarray:
+        """Return `array` as a numpy array."""
 
-    def costs_at(self, total, rows: np.ndarray, cols: np.ndarray,
+    def costs_at(self, total: Array, rows: np.ndarray, cols: np.ndarray,
                  disparities: np.ndarray) -> np.ndarray:
         """Return total[rows[i], cols[i], disparities[i, j]] on the host, (n, k)."""

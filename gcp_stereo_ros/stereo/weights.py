@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .config import StereoConfig
 from .disparity_confidence import CONFIDENCE_FEATURES, ConfidenceFit
 
 DEFAULT_WEIGHTS = Path(__file__).parents[1] / 'weights' / 'gcp_cnn.pt'
@@ -81,7 +82,7 @@ def cnn_calibrations(own: dict | None, weights: Path) -> dict[int, Knots | None]
     return calibrations
 
 
-def method_key(cfg) -> str:
+def method_key(cfg: StereoConfig) -> str:
     """
     Return the side file's key of cfg's disparity-confidence fit.
 
@@ -93,7 +94,7 @@ def method_key(cfg) -> str:
     return key + (f'@{cfg.downsample}' if cfg.downsample > 1 else '')
 
 
-def confidence_fit(cfg) -> ConfidenceFit | None:
+def confidence_fit(cfg: StereoConfig) -> ConfidenceFit | None:
     """Return the disparity-confidence fit of cfg's method and weights, None if none ships."""
     entry = read_side_file(cfg.weights).get(method_key(cfg))
     if entry is None:

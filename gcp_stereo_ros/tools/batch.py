@@ -53,7 +53,8 @@ JSON_EVERY_SECONDS = 10.0
 # Worker processes: no progress bars of their own (tqdm reads this when imported).
 RUNTIME_ENV = {'env_vars': {'TQDM_DISABLE': '1'}}
 
-_cache = {}  # per worker process: the pipeline or evaluation Runner of each set of options
+# per worker process: the pipeline or evaluation Runner of each set of options
+_cache: dict[object, object] = {}
 
 
 def _kept(key, make):
@@ -316,7 +317,7 @@ def parse_args(argv):
 
 
 @console_main(PROG)
-def main(argv=None):
+def main(argv: list[str] | None = None) -> int | None:
     args = parse_args(argv)
     rows = {}
     if args.bags:  # settings and weights are checked here once, not by every item

@@ -111,7 +111,7 @@ def volume_stage_seconds(left, right, nd, repeat):
 
 
 @console_main('gcp-stereo-bench')
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--dataset', default='motorcycle',
@@ -138,9 +138,9 @@ def main(argv=None):
     nd = args.max_disp
     print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, '
           f'repeat {args.repeat}; {cpu_name()}')
+    variants: dict[str, dict[str, object]]
     if args.device == 'cuda':
         print(f'GPU: {gpu_name()}')
-    if args.device == 'cuda':
         seconds = {'opencv_sgbm_hh': median_seconds(lambda: opencv_sgbm(left, right, nd),
                                                     args.repeat)}
         variants = {'cuda_pipeline': {'device': 'cuda'},

@@ -11,30 +11,45 @@ that every `finally` (a bag's staging folder, say) runs first. Anything else is 
 keeps its traceback.
 """
 import argparse
+from collections.abc import Callable
 import functools
 import signal
 import sys
 import threading
+from types import FrameType
+from typing import Protocol
+
+# A tool's main(argv): its exit status, None for 0.
+Main = Callable[[list[str] | None], int | None]
+
+
+class Entry(Protocol):
+    """A console script's entry: main(argv=None) -> the exit status."""
+
+    def __call__(self, argv: list[str] | None = None) -> int: ...
 
 
 class Terminated(BaseException):
     """SIGTERM, raised like KeyboardInterrupt."""
 
 
-def _terminate(signum, frame):
+def _terminate(signum: int, frame: FrameType | None) -> None:
     raise Terminated
 
 
-def console_main(prog, errors=()):
+def console_main(prog: str,
+                 errors: tuple[type[Exception], ...] = ()) -> Callable[[Main], Entry]:
     """Return a decorator making `main(argv=None)` a console-script entry (see the module)."""
-    def decorate(main):
+    expected: tuple[type[Exception], ...] = (ValueError, OSError, *errors)
+
+    def decorate(main: Main) -> Entry:
         @functools.wraps(main)
-        def entry(argv=None):
+        def entry(argv: list[str] | None = None) -> int:
             main_thread = threading.current_thread() is threading.main_thread()
             previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
             try:
                 status = main(argv)
-            except (ValueError, OSError, *errors) as err:
+            except expected as err:
                 _report(f'{prog}: error: {err}', err)
                 return 1
             except KeyboardInterrupt as err:
@@ -51,13 +66,13 @@ def console_main(prog, errors=()):
     return decorate
 
 
-def _report(line, err):
+def _report(line: str, err: BaseException) -> None:
     """Print `line` and the notes of `err` as one line on stderr."""
     text = '; '.join([line, *getattr(err, '__notes__', ())])
     print(' '.join(part.strip() for part in text.splitlines()), file=sys.stderr)
 
 
-def positive_int(text):
+def positive_int(text: str) -> int:
     """Argparse type: an integer >= 1."""
     value = int(text)
     if value < 1:
@@ -65,7 +80,7 @@ def positive_int(text):
     return value
 
 
-def positive(text):
+def positive(text: str) -> float:
     """Argparse type: a number > 0."""
     value = float(text)
     if not value > 0:

@@ -49,7 +49,7 @@ def run(cmd):
 
 
 @console_main('gcp-stereo-demo')
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog='gcp-stereo-demo', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--out', type=Path, default=Path('out'),
@@ -72,7 +72,7 @@ def main(argv=None):
         from sensor_msgs.msg import Image
         from stereo_msgs.msg import DisparityImage
 
-        got = {'disparity': [], 'gcp_mask': []}
+        got: dict[str, list] = {'disparity': [], 'gcp_mask': []}
         peer.create_subscription(DisparityImage, 'disparity', got['disparity'].append, 10)
         peer.create_subscription(Image, 'gcp_mask', got['gcp_mask'].append, 10)
         for i, (dataset, name) in enumerate(frames):
@@ -96,6 +96,7 @@ def main(argv=None):
             if args.readme_image and name == 'motorcycle':
                 save_png(args.readme_image, disparity_picture(disp, top, README_WIDTH))
             save_png(args.out / f'{stem}_gcp_mask.png', mask_image(gcp))
+            assert frame.gt is not None  # the demo's frames have ground truth
             rows.append((name, error_rates(disp, frame.gt, frame.valid), 100 * gcp.mean()))
     keys = ('bad1', 'bad2', 'bad3', 'bad5', 'mae', 'density', 'bad3_published')
     print(f'\n{"frame":<22}' + ''.join(f'{k.replace("_published", "pub"):>9}' for k in keys)

@@ -240,7 +240,7 @@ def write_rows(path, rows):
 
 
 @console_main('gcp-stereo-eval')
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog='gcp-stereo-eval', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     add_options(ap)

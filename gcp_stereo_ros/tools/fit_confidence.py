@@ -103,7 +103,7 @@ def split_frames(path):
 
 
 @console_main('fit_confidence')
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog='python -m gcp_stereo_ros.tools.fit_confidence',
                                  description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -116,7 +116,7 @@ def main(argv=None):
     ap.add_argument('--downsample', nargs='+', type=int, default=[1], choices=DOWNSAMPLE,
                     help='fit for each of these downsample factors (each has its own fit)')
     ap.add_argument('--weights', default='', help="CNN weights ('' = the shipped ones)")
-    low, high = RANGES['cnn_filter_radius']
+    low, high = map(int, RANGES['cnn_filter_radius'])
     ap.add_argument('--cnn-filter-radius', type=int, nargs='+', default=[0], metavar='R',
                     choices=range(low, high + 1),
                     help=f'fit for each of these radii of the CNN filter ({low} to {high}; '

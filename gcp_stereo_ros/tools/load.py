@@ -82,7 +82,7 @@ def step_arg(text):
 
 
 @console_main('gcp-stereo-load')
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog='gcp-stereo-load', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--dataset', default='motorcycle')

@@ -265,7 +265,7 @@ def training(args):
 
 
 @console_main('gcp-stereo-plot')
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog='gcp-stereo-plot', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest='command', required=True)

@@ -272,7 +272,7 @@ def distributed(device):
 
 
 @console_main('gcp-stereo-train')
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     args = parse_args(argv)
     rank, world, device = distributed(args.device)  # rank 0 validates, reports and saves

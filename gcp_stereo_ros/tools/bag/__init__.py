@@ -147,7 +147,7 @@ def parser():
 
 
 @console_main(PROG, errors=(WriterError, TypesysError))
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     args = parser().parse_args(argv)
     try:
         {'make': make, 'run': run, 'play': play}[args.command].command(args)

@@ -10,8 +10,8 @@ from .files import FRAME_RATE_HZ, IMAGE_TYPES, open_bag, PROG, read_messages
 from ...ros.graph import shm_segment_bytes
 
 MATCH_SETTLE_SECONDS = 3.0  # see wait_for_subscribers
-# Before exiting: a player exiting right after publishing lost its last best-effort
-# messages in 2 of 20 plays, in none of 45 after lingering this long.
+# s before exiting, for best-effort subscribers to take the last messages (chosen by
+# experiment: doc/notes/implementation_history.md)
 LINGER_SECONDS = 1.0
 
 
@@ -53,8 +53,8 @@ def wait_for_subscribers(publishers, seconds):
 
     DDS matches the two ends separately, each on the other's discovery traffic: a subscriber
     matched here may not have matched this publisher yet, and drops what it sends until
-    then. Hence MATCH_SETTLE_SECONDS more (measured with a node starting up: 1 s lost the
-    pair in 1 of 6 runs, 3 s in none of 8).
+    then. Hence MATCH_SETTLE_SECONDS more (chosen by experiment:
+    doc/notes/implementation_history.md).
     """
     deadline = time.monotonic() + seconds
     while any(p.get_subscription_count() == 0 for p in publishers) and time.monotonic() < deadline:
@@ -120,7 +120,7 @@ def command(args):
                 if not args.loop:
                     break
                 # The next pass one frame period after the last stamp, as a camera would go
-                # on (a one-stamp bag at FRAME_RATE_HZ), not at once: that was a flood.
+                # on (a one-stamp bag at FRAME_RATE_HZ), not at once, which floods the graph.
                 period = np.median(np.diff(stamps)) if len(stamps) > 1 else 1e9 / FRAME_RATE_HZ
                 resume = start[1] + (stamps[-1] - start[0] + period) / 1e9 / args.rate
             for p in publishers.values():  # reliable subscribers: let them take the last messages
