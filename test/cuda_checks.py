@@ -320,7 +320,6 @@ def test_cuda_device_errors():
 GPU_FRAMES = ['kitti2012/000070_10'] + [f'kitti2015/{n:06d}_10' for n in range(31, 41)]
 
 
-@pytest.mark.skipif(gpu.SIMULATED, reason='whole frames on a real GPU only')
 @pytest.mark.parametrize('name', GPU_FRAMES)
 def test_gpu_publishes_the_cpus_pixels_on_whole_frames(data_dir, name):
     frame = load_frame(data_dir, name)

@@ -67,7 +67,7 @@ class CpuBackend:
 
     def cnn_confidence(self, net: Any, pair: tuple[np.ndarray, np.ndarray], max_disp: int,
                        bf16: bool | str, radius: int, scratch: np.ndarray | None,
-                       seconds: dict[str, float],
+                       seconds: dict[str, float] | None,
                        cancel: CancelFlag | None = None) -> CnnConfidence:
         """Return `cnn.confidence` (torch is imported with the CNN)."""
         from .cnn import confidence
@@ -146,6 +146,7 @@ def cnn_confidence(net: Any, left: np.ndarray, right: np.ndarray, max_disp: int,
     `images.gray_pair` takes.
     """
     b = backend(device)
-    pair = b.upload(*gray_pair(left, right), True)
+    left, right = gray_pair(left, right)
+    pair = b.upload(left, right, True)
     cnn = b.cnn_confidence(net, pair, max_disp, bf16, radius, None, None)
     return CnnConfidence(*(b.to_host(a) for a in cnn))

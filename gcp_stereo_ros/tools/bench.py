@@ -111,7 +111,7 @@ def volume_stage_seconds(left, right, nd, repeat):
 
 
 @console_main('gcp-stereo-bench')
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='gcp-stereo-bench', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--dataset', default='motorcycle',
