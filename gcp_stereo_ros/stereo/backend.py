@@ -4,6 +4,8 @@ The pipeline's stages on the CPU (`CpuBackend`), and the backend of a device (`b
 `backend(device)` returns the `stages.Backend` of a `StereoConfig.device`: this module's
 `CpuBackend`, or `backend_cuda.CudaBackend` on a GPU.
 """
+from functools import partial
+
 import cv2
 import numpy as np
 
@@ -11,6 +13,7 @@ from . import cost, gcp, sgm
 from .disparity_confidence import features, margin
 from .images import gray_pair
 from .memory import call_glibc
+from .postprocess import invalidate
 from .stages import Backend, Buffers, CnnConfidence, CostVolume, Winners
 
 
@@ -99,13 +102,16 @@ class CpuBackend:
         cof_c, cof_d = (None, None) if cnn is None else cnn[:2]
         return fit(features(*winners, cof_c, cof_d, gcps))
 
-    def to_host(self, array):
-        """Return `array` itself."""
-        return array
+    def invalidate(self, winners, confidence, total, plain, cfg, camera):
+        """Return `postprocess.invalidate` (costs by `sgm.costs_at`) and the confidence."""
+        disp = invalidate(*winners, cfg, camera, confidence, partial(sgm.costs_at, total), plain)
+        if confidence is not None:
+            confidence[np.isnan(disp)] = 0.0
+        return disp, confidence
 
-    def costs_at(self, total, rows, cols, disparities):
-        """Return `sgm.costs_at`."""
-        return sgm.costs_at(total, rows, cols, disparities)
+    def to_host(self, *arrays):
+        """Return the arrays themselves."""
+        return arrays
 
 
 def backend(device: str) -> Backend:
@@ -130,4 +136,4 @@ def cnn_confidence(net, left, right, max_disp, device='cpu', bf16=False, radius=
     b = backend(device)
     pair = b.upload(*gray_pair(left, right), True)
     cnn = b.cnn_confidence(net, pair, max_disp, bf16, radius, None, {})
-    return CnnConfidence(*(b.to_host(a) for a in cnn))
+    return CnnConfidence(*b.to_host(*cnn))

@@ -3,12 +3,11 @@ The one stereo pipeline every caller uses: evaluation, the ROS node and the bag 
 
 `StereoPipeline` runs the stages of a `stages.Backend` once, in order, over explicit
 buffers: upload -> CNN confidence -> cost volume -> plain SGM -> GCP selection and
-refinement -> SGM -> winner-takes-all (and median) -> disparity confidence -> download ->
-invalidation (`postprocess`). Its settings are a `config.StereoConfig`, its memory is
-bounded by `memory.memory_bytes`.
+refinement -> SGM -> winner-takes-all (and median) -> disparity confidence ->
+invalidation (`postprocess`) -> one download of what is published. Its settings are a
+`config.StereoConfig`, its memory is bounded by `memory.memory_bytes`.
 """
 from dataclasses import dataclass
-from functools import partial
 import time
 
 import numpy as np
@@ -18,7 +17,6 @@ from .cnn_filter import scratch_size
 from .config import StereoConfig
 from .images import bin_area, gray_pair, subsample, upsample
 from .memory import call_glibc, check_memory, volume_arithmetic
-from .postprocess import invalidate
 from .stages import Backend, CnnConfidence
 from .weights import confidence_fit
 
@@ -63,7 +61,7 @@ class StereoResult:
     seconds : dict
         Wall time in seconds per stage that ran, in order: 'downsample', 'upload' (GPU),
         'cnn' and 'confidence' (the CNN and its correlation), 'cost', 'plain_sgm',
-        'refine', 'sgm', 'wta', 'disparity_confidence', 'download' (GPU), 'invalidate',
+        'refine', 'sgm', 'wta', 'disparity_confidence', 'invalidate', 'download' (GPU),
         'upsample'.
     disparity_confidence : numpy.ndarray or None
         float32 in [0, 1]: P(the published disparity within 3 px of the truth), 0 where the
@@ -245,15 +243,13 @@ class StereoPipeline:
         if self.fit is not None:
             sure = b.disparity_confidence(self.fit, won, on_device, gcp)
             lap('disparity_confidence')
-        disp, consistent, m, sure, gcp, plain = (
-            b.to_host(a) for a in (*won, sure, gcp, plain))
-        if fresh:
-            cnn = CnnConfidence(*(b.to_host(a) for a in on_device))
-        lap(None if b.host else 'download')
-        invalidate(disp, consistent, m, cfg, camera, sure, partial(b.costs_at, total), plain)
-        if sure is not None:
-            sure[np.isnan(disp)] = 0.0
+        disp, sure = b.invalidate(won, sure, total, plain, cfg, camera)
         lap('invalidate')
+        disp, consistent, m, sure, gcp, *cnn_host = b.to_host(
+            disp, won.consistent, won.margin, sure, gcp, *(on_device if fresh else ()))
+        if fresh:
+            cnn = CnnConfidence(*cnn_host)
+        lap(None if b.host else 'download')
         cof_c, cof_d, cof_dr = cnn if cfg.use_gcp else (None,) * 3
         if f > 1:  # back to full size, disparities in full-size pixels
             disp, cof_d, cof_dr = (None if a is None else a * a.dtype.type(f)

@@ -106,9 +106,16 @@ class Backend(Protocol):
                              cnn: CnnConfidence | None, gcp) -> Array:
         """Return the disparity confidence (`disparity_confidence.features`, then `fit`)."""
 
-    def to_host(self, array) -> np.ndarray | None:
-        """Return `array` as a numpy array (None stays None)."""
+    def invalidate(self, winners: Winners, confidence, total, plain, cfg,
+                   camera) -> tuple[Array, Array | None]:
+        """
+        Return the disparity invalidated (`postprocess.invalidate`) and the confidence.
 
-    def costs_at(self, total, rows: np.ndarray, cols: np.ndarray,
-                 disparities: np.ndarray) -> np.ndarray:
-        """Return total[rows[i], cols[i], disparities[i, j]] on the host, (n, k)."""
+        Both in place: the winners' disparity NaN where cfg's tests fail (`total`: the
+        summed costs for the background test; `plain`: plain SGM's disparity or None;
+        `camera`: as `StereoPipeline.__call__` takes it), the confidence (None stays None)
+        0 there.
+        """
+
+    def to_host(self, *arrays) -> tuple:
+        """Return the arrays as numpy arrays, in one download (None stays None)."""
