@@ -41,7 +41,7 @@ gpu-check:
 	if [ -d .gpu/wheels ]; then $(PYTHON) -m pip install -q --no-deps --target .gpu/site .gpu/wheels/*.whl; fi
 	mkdir -p $(GPU_OUT)
 	status=0; GCP_STEREO_DATA=$(GPU_DATA) NUMBA_ENABLE_CUDASIM=0 $(PYTHON) -m pytest -q \
-		-p no:cacheprovider test/cuda_checks.py --junitxml=$(GPU_OUT)/cuda_checks.xml || status=$$?; \
+		-p no:cacheprovider test/cuda_checks.py test/cuda_invalidate_checks.py --junitxml=$(GPU_OUT)/cuda_checks.xml || status=$$?; \
 	$(PYTHON) -m gcp_stereo_ros.tools.bench --device cuda --repeat 15 --dataset $(GPU_DATA) \
 		--frame kitti2012/000070_10 --json $(GPU_OUT)/bench.json || status=$$?; exit $$status
 

@@ -80,6 +80,15 @@ def distorted_pair():
     return SimpleNamespace(rect=rect, raw=raw, info=info, f=f, baseline=baseline)
 
 
+@pytest.fixture(scope='session')
+def kitti70(data_dir):
+    """Return the gray pair (float32) of KITTI 2012 000070_10, the unseen test frame."""
+    from gcp_stereo_ros.evaluation.datasets import load_frame
+    from gcp_stereo_ros.stereo.images import gray_pair
+    frame = load_frame(data_dir, 'kitti2012/000070_10')
+    return gray_pair(frame.left, frame.right)
+
+
 @pytest.fixture
 def kitti_occ_only(tmp_path, data_dir):
     """

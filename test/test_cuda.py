@@ -1,9 +1,10 @@
 """
 The CUDA pipeline: its kernels against the CPU, simulated, on a GPU if any, compiled for one.
 
-The comparisons live in cuda_checks.py and run in a process of their own: Numba's CUDA
-simulator is chosen by NUMBA_ENABLE_CUDASIM before numba.cuda is first imported and stays
-for the life of the process, so it must not leak into (or depend on) this one.
+The comparisons live in cuda_checks.py and cuda_invalidate_checks.py and run in a process of
+their own: Numba's CUDA simulator is chosen by NUMBA_ENABLE_CUDASIM before numba.cuda is
+first imported and stays for the life of the process, so it must not leak into (or depend
+on) this one.
 """
 import os
 from pathlib import Path
@@ -28,11 +29,12 @@ def run_checks(simulate):
     env = {**os.environ, 'NUMBA_ENABLE_CUDASIM': '1' if simulate else '0'}
     # The sector count reads the simulator's arrays: on a GPU, the rest; whole frames: a GPU's.
     only = ['-k', 'not whole_frames' if simulate else 'not coalesced']
-    run = subprocess.run([sys.executable, '-m', 'pytest', '-q', '-p', 'no:cacheprovider',
-                          str(HERE / 'cuda_checks.py'), *only],
-                         env=env, cwd=HERE.parent, capture_output=True, text=True, timeout=900)
-    assert run.returncode == 0 and ' passed' in run.stdout and 'skipped' not in run.stdout, (
-        run.stdout[-6000:] + run.stderr[-3000:])
+    for checks in ('cuda_checks.py', 'cuda_invalidate_checks.py'):  # each in its own time
+        run = subprocess.run([sys.executable, '-m', 'pytest', '-q', '-p', 'no:cacheprovider',
+                              str(HERE / checks), *only], env=env, cwd=HERE.parent,
+                             capture_output=True, text=True, timeout=900)
+        assert run.returncode == 0 and ' passed' in run.stdout and 'skipped' not in run.stdout, (
+            run.stdout[-6000:] + run.stderr[-3000:])
 
 
 def test_cuda_kernels_equal_the_cpu_under_the_simulator():
@@ -86,10 +88,11 @@ def test_cuda_kernels_compile_for_a_gpu(data_dir, monkeypatch):
         StereoPipeline(config.replace(device='cuda'))(left, right)
     names = {name for name, _ in compiled}
     assert names == {'_census_transform', '_census_cost', '_sad_cost', '_select_refine',
-                     '_paths', '_path_sum', '_right_winners', '_winners'}
+                     '_paths', '_path_sum', '_right_winners', '_winners', '_fill_rows',
+                     '_background_fits', '_links', '_sizes'}
     # every kernel once per volume type it meets (the WTA always finds the right view's
-    # winners, for the confidence)
-    assert len(compiled) == 14 and all('.entry' in ptx for ptx in compiled.values())
+    # winners, for the confidence; the background test reads the summed costs)
+    assert len(compiled) == 19 and all('.entry' in ptx for ptx in compiled.values())
 
 
 def test_the_gpu_confidence_runs_float32_as_ieee_not_tf32():

@@ -4,6 +4,7 @@ The pipeline's stages on the CPU (`CpuBackend`), and the backend of a device (`b
 `backend(device)` returns the `stages.Backend` of a `StereoConfig.device`: this module's
 `CpuBackend`, or `backend_cuda.CudaBackend` on a GPU.
 """
+from functools import partial
 from typing import Any
 
 import cv2
@@ -11,9 +12,11 @@ import numpy as np
 
 from . import cost, gcp, sgm
 from .cancel import CancelFlag
+from .config import StereoConfig
 from .disparity_confidence import ConfidenceFit, features, margin
 from .images import gray_pair
 from .memory import call_glibc
+from .postprocess import invalidate
 from .stages import Backend, Buffers, CnnConfidence, CostVolume, Winners
 
 
@@ -114,14 +117,19 @@ class CpuBackend:
         cof_c, cof_d = (None, None) if cnn is None else cnn[:2]
         return fit(features(*winners, cof_c, cof_d, gcps))
 
-    def to_host(self, array: np.ndarray) -> np.ndarray:
-        """Return `array` itself."""
-        return array
+    def invalidate(self, winners: Winners, confidence: np.ndarray | None, total: np.ndarray,
+                   plain: np.ndarray | None, cfg: StereoConfig,
+                   camera: tuple[float, float] | None
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Return `postprocess.invalidate` (costs by `sgm.costs_at`) and the confidence."""
+        disp = invalidate(*winners, cfg, camera, confidence, partial(sgm.costs_at, total), plain)
+        if confidence is not None:
+            confidence[np.isnan(disp)] = 0.0
+        return disp, confidence
 
-    def costs_at(self, total: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                 disparities: np.ndarray) -> np.ndarray:
-        """Return `sgm.costs_at`."""
-        return sgm.costs_at(total, rows, cols, disparities)
+    def to_host(self, *arrays: np.ndarray | None) -> tuple[np.ndarray | None, ...]:
+        """Return the arrays themselves."""
+        return arrays
 
 
 def backend(device: str) -> Backend:
@@ -149,4 +157,4 @@ def cnn_confidence(net: Any, left: np.ndarray, right: np.ndarray, max_disp: int,
     left, right = gray_pair(left, right)
     pair = b.upload(left, right, True)
     cnn = b.cnn_confidence(net, pair, max_disp, bf16, radius, None, None)
-    return CnnConfidence(*(b.to_host(a) for a in cnn))
+    return CnnConfidence(*b.to_host(*cnn))

@@ -1,21 +1,36 @@
 """
 The stages of the pipeline on a GPU (`StereoConfig.device` 'cuda[:N]'): `CudaBackend`.
 
-Every array is a torch tensor on the device (`gpu`); the pair is uploaded once and the
-volumes stay there. Each stage is the CUDA twin beside its CPU stage (`cost_cuda`,
-`cnn_cuda`, `gcp_cuda`, `sgm_cuda`, `disparity_confidence_cuda`).
+Every array is a torch tensor on the device (`gpu`); the pair is uploaded once, the
+volumes stay there and what is published comes back in one download. Each stage is the
+CUDA twin beside its CPU stage (`cost_cuda`, `cnn_cuda`, `gcp_cuda`, `sgm_cuda`,
+`disparity_confidence_cuda`, `postprocess_cuda`).
 """
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import cnn_cuda, cost_cuda, disparity_confidence_cuda, gcp_cuda, gpu, sgm_cuda
+from . import (cnn_cuda, cost_cuda, disparity_confidence_cuda, gcp_cuda, gpu, postprocess_cuda,
+               sgm_cuda)
 from .cnn import padded_input
 from .cost import max_cost
-from .images import mean_std
 from .stages import Buffers, CnnConfidence, CostVolume, Winners
 
 CNN_TYPES = (np.float32, np.int32, np.int32)  # of cof_c, cof_d, cof_dr
+ALIGN = 16  # bytes: where each array of a download starts
+
+
+def standardize(pair):
+    """
+    Return `images.standardize` of each image of a float32 tensor (n, H, W), on its device.
+
+    The mean and std summed in float64 (numpy's pairwise float32 sums give them within
+    1e-6 relative), rounded to float32 for the arithmetic as numpy rounds them.
+    """
+    flat = pair.reshape(len(pair), -1).double()
+    mean, std = flat.mean(1), flat.std(1, correction=0)
+    std = torch.where(std > 1e-6, std, 1.0)  # a flat image
+    return (pair - mean.float()[:, None, None]) / std.float()[:, None, None]
 
 
 class CudaBackend:
@@ -57,12 +72,9 @@ class CudaBackend:
 
     def upload(self, left, right, standardized):
         """Return (pair, standardized pair or None), float32 tensors (2, H, W) on the GPU."""
-        stats = [mean_std(g) for g in (left, right)]
         with gpu.current(self.device):
             pair = torch.from_numpy(np.stack([left, right])).to(self.torch_device)
-            if not standardized:  # images.standardize on the device
-                return pair, None
-            return pair, torch.stack([(g - m) / s for g, (m, s) in zip(pair, stats)])
+            return pair, standardize(pair) if standardized else None
 
     def to_device(self, cnn):
         """Return host CNN outputs as tensors on the GPU."""
@@ -117,14 +129,25 @@ class CudaBackend:
             planes = disparity_confidence_cuda.features(*winners, cof_c, cof_d, gcps)
             return disparity_confidence_cuda.calibrated(fit, planes)
 
-    def to_host(self, array):
-        """Return a tensor as a numpy array (one download)."""
-        return array.cpu().numpy()
+    def invalidate(self, winners, confidence, total, plain, cfg, camera):
+        """Return `postprocess_cuda.invalidate` and the confidence, on the GPU."""
+        with gpu.current(self.device):
+            disp = postprocess_cuda.invalidate(*winners, cfg, camera, confidence, total, plain)
+            if confidence is not None:
+                confidence.masked_fill_(torch.isnan(disp), 0.0)
+        return disp, confidence
 
-    def costs_at(self, total, rows, cols, disparities):
-        """Return total[rows[i], cols[i], disparities[i, j]], gathered on the GPU."""
-        fixed = total.dtype == torch.uint16  # gathered as int16, the same bits
-        index = [torch.from_numpy(np.ascontiguousarray(a, np.int64)).to(total.device)
-                 for a in (rows[:, None], cols[:, None], disparities)]
-        picked = (total.view(torch.int16) if fixed else total)[tuple(index)].cpu().numpy()
-        return picked.view(np.uint16) if fixed else picked
+    def to_host(self, *arrays):
+        """Return tensors as numpy arrays: one download of them packed (None stays None)."""
+        present = [a.contiguous() for a in arrays if a is not None]
+        sizes = [a.numel() * a.element_size() for a in present]
+        starts = np.cumsum([0] + [-(-n // ALIGN) * ALIGN for n in sizes])
+        with gpu.current(self.device):
+            packed = torch.empty(int(starts[-1]), dtype=torch.uint8,
+                                 device=present[0].device if present else 'cpu')
+            for a, start, n in zip(present, starts, sizes):
+                packed[start:start + n] = a.view(-1).view(torch.uint8)
+            host = packed.cpu().numpy()
+        out = iter(host[start:start + n].view(torch.empty(0, dtype=a.dtype).numpy().dtype)
+                   .reshape(a.shape) for a, start, n in zip(present, starts, sizes))
+        return tuple(None if a is None else next(out) for a in arrays)

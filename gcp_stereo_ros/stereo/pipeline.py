@@ -3,14 +3,13 @@ The one stereo pipeline every caller uses: evaluation, the ROS node and the bag 
 
 `StereoPipeline` runs the stages of a `stages.Backend` once, in order, over explicit
 buffers: upload -> CNN confidence -> cost volume -> plain SGM -> GCP selection and
-refinement -> SGM -> winner-takes-all (and median) -> disparity confidence -> download ->
-invalidation (`postprocess`). Its settings are a `config.StereoConfig`, its memory is
-bounded by `memory.memory_bytes`.
+refinement -> SGM -> winner-takes-all (and median) -> disparity confidence ->
+invalidation (`postprocess`) -> one download of what is published. Its settings are a
+`config.StereoConfig`, its memory is bounded by `memory.memory_bytes`.
 """
 from dataclasses import dataclass
-from functools import partial
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -20,7 +19,6 @@ from .cnn_filter import scratch_size
 from .config import StereoConfig
 from .images import bin_area, gray_pair, subsample, upsample
 from .memory import call_glibc, check_memory, volume_arithmetic
-from .postprocess import invalidate
 from .stages import Backend, CnnConfidence
 from .weights import confidence_fit
 
@@ -64,7 +62,7 @@ class StereoResult:
     seconds : dict
         Wall time in seconds per stage that ran, in order: 'downsample', 'upload' (GPU),
         'cnn' and 'confidence' (the CNN and its correlation), 'cost', 'plain_sgm',
-        'refine', 'sgm', 'wta', 'disparity_confidence', 'download' (GPU), 'invalidate',
+        'refine', 'sgm', 'wta', 'disparity_confidence', 'invalidate', 'download' (GPU),
         'upsample'.
     disparity_confidence : numpy.ndarray or None
         float32 (H, W) in [0, 1]: P(the published disparity within 3 px of the truth), 0
@@ -255,15 +253,15 @@ class StereoPipeline:
         if self.fit is not None:
             sure = b.disparity_confidence(self.fit, won, on_device, gcp)
             lap('disparity_confidence')
-        disp, consistent, m = (b.to_host(a) for a in won)
-        sure, gcp, plain = (None if a is None else b.to_host(a) for a in (sure, gcp, plain))
-        if fresh and on_device is not None:
-            cnn = CnnConfidence(*(b.to_host(a) for a in on_device))
-        lap(None if b.host else 'download')
-        invalidate(disp, consistent, m, cfg, camera, sure, partial(b.costs_at, total), plain)
-        if sure is not None:
-            sure[np.isnan(disp)] = 0.0
+        disp, sure = b.invalidate(won, sure, total, plain, cfg, camera)
         lap('invalidate')
+        new_cnn = tuple(on_device) if fresh and on_device is not None else ()
+        host = b.to_host(disp, won.consistent, won.margin, sure, gcp, *new_cnn)
+        disp, consistent, m = cast(tuple[np.ndarray, np.ndarray, np.ndarray], host[:3])
+        sure, gcp = host[3:5]
+        if new_cnn:
+            cnn = CnnConfidence(*host[5:])
+        lap(None if b.host else 'download')
         cof_c, cof_d, cof_dr = cnn if cfg.use_gcp and cnn is not None else (None,) * 3
         if f > 1:  # back to full size, disparities in full-size pixels
             disp, consistent, m = (upsample(a, f, shape)

@@ -25,11 +25,11 @@ What of the winner-takes-all disparity to publish: the invalidation; ROS-free.
 - more than `plain_check` px nearer than plain SGM, the same costs aggregated without the
   GCPs: a second opinion without the CNN, last, so that the tests before it do not see the
   gaps it leaves.
-A value of 0 (False) turns each off; why each test and its default: doc/published.md. The
-CPU and the CUDA pipeline give the same inputs (`sgm.winners`, `sgm_cuda.winners`), so
-both apply this identically. With `downsample` f everything here runs on the matching
-grid, 1 / f of the images, before the result is blown up to full size: the sizes and
-disparities the parameters give in full-size pixels are scaled to it (a speckle of
+A value of 0 (False) turns each off; why each test and its default: doc/published.md.
+`postprocess_cuda.invalidate` is the twin on a GPU: from the same inputs (`sgm.winners`,
+`sgm_cuda.winners`) the same pixels. With `downsample` f everything here runs on the
+matching grid, 1 / f of the images, before the result is blown up to full size: the sizes
+and disparities the parameters give in full-size pixels are scaled to it (a speckle of
 `speckle_size` / f^2 matching pixels, `speckle_range` / f).
 """
 import cv2
@@ -45,10 +45,10 @@ def valid_window(cfg, shape):
 
     In full-size pixels when matched at 1 / cfg.downsample; empty for images too small.
     """
-    return _inside(cfg.window // 2 * cfg.downsample, shape)
+    return inside(cfg.window // 2 * cfg.downsample, shape)
 
 
-def _inside(border, shape):
+def inside(border, shape):
     """Return the region (x0, y0, x1, y1) of `shape` (H, W) at least `border` px from its edges."""
     h, w = shape
     x0, y0 = min(border, w), min(border, h)
@@ -61,7 +61,7 @@ def cut_short(disp, cfg):
 
     `disp`: on the matching grid (1 / cfg.downsample of the images), in its pixels.
     """
-    x0, y0, x1, y1 = _inside(cfg.window // 2, disp.shape)
+    x0, y0, x1, y1 = inside(cfg.window // 2, disp.shape)
     out = np.ones(disp.shape, bool)
     out[y0:y1, x0:x1] = False
     x = np.arange(disp.shape[1])
@@ -153,7 +153,7 @@ def background_fits(disp, low, costs, cfg):
 
     See the module's docstring. `costs(rows, cols, disparities)` gives the summed SGM costs
     of the pixels (rows[i], cols[i]) at disparities[i, :] in [0, cfg.matched_disp - 1],
-    (n,) (n,) (n, k) intp -> (n, k) (a backend's `costs_at` of the summed costs); a low
+    (n,) (n,) (n, k) intp -> (n, k) (`sgm.costs_at` of the summed costs); a low
     pixel without a background fits.
     """
     rows, cols, at = _lookups(disp, backgrounds(disp, low), cfg.matched_disp - 1)

@@ -12,6 +12,7 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 
 from .cancel import CancelFlag
+from .config import StereoConfig
 from .disparity_confidence import ConfidenceFit
 
 Array = Any  # a numpy array on the CPU, a torch tensor on a GPU
@@ -113,9 +114,17 @@ class Backend(Protocol):
                              cnn: CnnConfidence | None, gcp: Array | None) -> Array:
         """Return the disparity confidence (`disparity_confidence.features`, then `fit`)."""
 
-    def to_host(self, array: Array) -> np.ndarray:
-        """Return `array` as a numpy array."""
+    def invalidate(self, winners: Winners, confidence: Array | None, total: Array,
+                   plain: Array | None, cfg: StereoConfig,
+                   camera: tuple[float, float] | None) -> tuple[Array, Array | None]:
+        """
+        Return the disparity invalidated (`postprocess.invalidate`) and the confidence.
 
-    def costs_at(self, total: Array, rows: np.ndarray, cols: np.ndarray,
-                 disparities: np.ndarray) -> np.ndarray:
-        """Return total[rows[i], cols[i], disparities[i, j]] on the host, (n, k)."""
+        Both in place: the winners' disparity NaN where cfg's tests fail (`total`: the
+        summed costs for the background test; `plain`: plain SGM's disparity or None;
+        `camera`: as `StereoPipeline.__call__` takes it), the confidence (None stays None)
+        0 there.
+        """
+
+    def to_host(self, *arrays: Array | None) -> tuple[np.ndarray | None, ...]:
+        """Return the arrays as numpy arrays, in one download (None stays None)."""
