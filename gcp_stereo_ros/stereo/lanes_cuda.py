@@ -7,14 +7,17 @@ lane l holding d = l, l + lanes, l + 2 lanes, ... of the D disparities. The kern
 cyclic neighbours' values and the group's minimum: one SGM step) and `lanes_argmin` (the
 group's first minimum: the WTA).
 
-Each has two bodies, chosen when this module is imported: warp shuffles within the group's
-mask on a GPU (no block barrier: groups run on independently), and shared memory with one
-block barrier under Numba's CUDA simulator, which has no shuffles. The simulator's body
+Each has two bodies, chosen when this module is imported by what numba.cuda is in the process
+(`gpu.SIMULATED` says the same, but a test that compiles for a GPU without one sets it):
+warp shuffles within the group's mask on a GPU (no block barrier: groups step on
+independently), and shared memory with one block barrier under Numba's CUDA simulator,
+which has no shuffles. The simulator's body
 needs `exchange_bytes` of dynamic shared memory per block (0 on a GPU) and every live thread
 of the block to call the function the same number of times (the simulator's barrier waits
 for the block's live threads only, so a thread that has returned drops out). Minima are
 exact in any order, so both bodies give the same bits.
 """
+import numba
 from numba import cuda, float32, njit
 
 from . import gpu
@@ -28,7 +31,7 @@ def lanes(nd):
     return min(WARP, max(8, 1 << (nd - 1).bit_length()))
 
 
-if gpu.SIMULATED:
+if numba.config.ENABLE_CUDASIM:
     def exchange_bytes(k):
         """Return the dynamic shared memory (bytes) a block of `exchange` over k values needs."""
         return 4 * 2 * THREADS * (k + 1)  # two steps (parity) of each thread's k values and low
@@ -87,6 +90,8 @@ else:
     @njit(inline='always')
     def _mask(lane, nl):
         """Return (the group's first lane in its warp, the group's lanes as a warp mask)."""
+        if nl == WARP:  # a constant mask: the compiler's convergence check is cheaper
+            return 0, 0xFFFFFFFF
         first = cuda.laneid - lane
         return first, ((1 << nl) - 1) << first
 

@@ -32,7 +32,7 @@ that also reads coalesced.
 """
 from functools import cache
 
-from numba import cuda, float32, njit
+from numba import cuda, float32, int32, njit, uint64
 import numpy as np
 import torch
 
@@ -41,7 +41,7 @@ from .lanes_cuda import exchange, exchange_bytes, lanes, lanes_argmin, THREADS, 
 from .sgm import parabola_offset, penalties, summation_order
 
 INF = np.float32(np.inf)
-AHEAD = 2  # steps whose costs a path's lanes read before the step that uses them
+AHEAD = 4  # steps whose costs a path's lanes read before the step that uses them
 
 
 @njit(inline='always')  # kernels call it too (it compiles for a GPU without one)
@@ -75,19 +75,22 @@ def _length(x, y, h, w, dx, dy):
 
 
 @cache
-def _path_kernel(nl, k):
-    """Return the path kernel for groups of nl lanes holding k disparities each."""
+def _path_kernel(nd):
+    """Return the path kernel for volumes of `nd` disparities (a constant of its code)."""
+    nl = lanes(nd)
+    k = -(-nd // nl)  # disparities a lane holds
     queue = AHEAD * k  # a constant for the local array's size
+    full = nd == k * nl  # every lane's every d inside D
 
     @cuda.jit
     def _paths(cost, total, lines, dirs, p1, p2):
         """
-        Write L_r of every direction: the first into `total`, the k-th into lines[k - 1].
+        Write L_r of every direction: the first into `total`, the j-th into lines[j - 1].
 
-        `dirs` (n, 3): dx, dy and the first block of each direction. Block (nl, group): its
-        `group` paths of one direction, a group of nl lanes each.
+        `dirs` (n, 3): dx, dy and the first block of each direction, in summation order.
+        Block (nl, group): `group` paths of one direction, nl lanes each.
         """
-        h, w, nd = cost.shape
+        h, w = cost.shape[:2]
         lane = cuda.threadIdx.x
         blk = cuda.blockIdx.x
         r = 0
@@ -105,36 +108,43 @@ def _path_kernel(nl, k):
         below = cuda.local.array(k, float32)  # here[i] of the lane after (d + 1), cyclic
         coming = cuda.local.array(queue, float32)  # C of the next AHEAD pixels
         fresh = cuda.local.array(k, float32)
+        # Indices as uint64 (free casts of values >= 0): Numba then adds no negative-index
+        # wrap-around, and the compiler turns the path's addresses into increments.
+        dest = out[uint64(y), uint64(x)]
         low = INF
         for i in range(k):  # L_r = C where the path enters
             d = lane + i * nl
             here[i] = INF
-            if d < nd:
-                c = cost[y, x, d]
-                out[y, x, d] = c
+            if full or d < nd:
+                c = cost[uint64(y), uint64(x), uint64(d)]
+                dest[uint64(d)] = c
                 here[i] = float32(c)
                 low = min(low, here[i])
-            for a in range(AHEAD):
-                if d < nd and a + 1 < steps:
-                    coming[a * k + i] = cost[y + (a + 1) * dy, x + (a + 1) * dx, d]
+                for a in range(AHEAD):
+                    if a + 1 < steps:
+                        coming[a * k + i] = cost[uint64(y + (a + 1) * dy),
+                                                 uint64(x + (a + 1) * dx), uint64(d)]
         for t in range(1, steps):
-            for i in range(k):  # the pixel AHEAD steps on, read before it is needed
-                d = lane + i * nl
-                if d < nd and t + AHEAD < steps:
-                    fresh[i] = cost[y + (AHEAD + 1) * dy, x + (AHEAD + 1) * dx, d]
+            if t + AHEAD < steps:  # the pixel AHEAD steps on, read before it is needed
+                ya, xa = uint64(y + (AHEAD + 1) * dy), uint64(x + (AHEAD + 1) * dx)
+                for i in range(k):
+                    d = lane + i * nl
+                    if full or d < nd:
+                        fresh[i] = cost[ya, xa, uint64(d)]
             m = exchange(here, low, lane, nl, t, above, below)  # min_d L_r(p - r, d)
             x += dx
             y += dy
+            dest = out[uint64(y), uint64(x)]
             jump = m + p2
             low = INF
             for i in range(k):
                 d = lane + i * nl
                 left = above[i] if lane > 0 else (above[i - 1] if i > 0 else INF)
                 right = below[i] if lane < nl - 1 else (below[i + 1] if i + 1 < k else INF)
-                if d < nd:
+                if full or d < nd:
                     best = min(min(here[i], jump), min(left, right) + p1)
                     v = (coming[i] - m) + best  # as the CPU's compiler orders it
-                    out[y, x, d] = v
+                    dest[uint64(d)] = v
                     here[i] = v
                     low = min(low, v)
                 for a in range(AHEAD - 1):
@@ -169,17 +179,16 @@ def aggregate(cost, p1, p2, paths, top, out=None):
     p1, p2 = penalties(gpu.numpy_type(cost), p1, p2, paths, top)
     total = torch.empty_like(cost) if out is None else out
     order = summation_order(paths)
-    nl = lanes(nd)
-    k = -(-nd // nl)
-    group = THREADS // nl
+    group = THREADS // lanes(nd)
     dirs, blocks = [], 0
     for dx, dy in order:
         dirs.append((dx, dy, blocks))
         blocks += -(-_starts(h, w, dx, dy) // group)
     dirs = torch.tensor(dirs, dtype=torch.int32).to(cost.device)
     lines = torch.empty((len(order) - 1,) + cost.shape, dtype=cost.dtype, device=cost.device)
-    gpu.launch_blocks(_path_kernel(nl, k), blocks, (nl, group), exchange_bytes(k), cost, total,
-                      lines, dirs, np.float32(p1), np.float32(p2))
+    gpu.launch_blocks(_path_kernel(nd), blocks, (lanes(nd), group),
+                      exchange_bytes(-(-nd // lanes(nd))), cost, total, lines, dirs,
+                      np.float32(p1), np.float32(p2))
     gpu.launch(_path_sum, total.numel(), total.view(-1), lines.view(len(order) - 1, -1))
     return total
 
@@ -211,8 +220,11 @@ def _right_winners(total, rbest):
 
 
 @cache
-def _winner_kernel(nl, k):
-    """Return the WTA kernel for groups of nl lanes holding k disparities each."""
+def _winner_kernel(nd):
+    """Return the WTA kernel for volumes of `nd` disparities (a constant of its code)."""
+    nl = lanes(nd)
+    k = -(-nd // nl)  # disparities a lane holds
+
     @cuda.jit
     def _winners(total, rbest, subpixel, lr_tol, out, consistent, s_best, s_second):
         """
@@ -221,27 +233,27 @@ def _winner_kernel(nl, k):
         Block (nl, group): `group` pixels, the lanes of one across its d. `rbest` is the
         right view's winners (from `_right_winners`) when lr_tol >= 0.
         """
-        h, w, nd = total.shape
+        h, w = total.shape[:2]
         lane = cuda.threadIdx.x
         i = cuda.blockIdx.x * cuda.blockDim.y + cuda.threadIdx.y
         if i >= h * w:
             return
         y, x = i // w, i % w
         s = cuda.local.array(k, float32)  # S(d) at d = lane + q nl, inf past D
-        low, at = INF, nd
+        low, at = INF, int32(nd)  # int32: one shuffle a value
         for q in range(k):
             d = lane + q * nl
             s[q] = INF
             if d < nd:
                 s[q] = float32(total[y, x, d])
                 if s[q] < low:
-                    low, at = s[q], d
+                    low, at = s[q], int32(d)
         low, best = lanes_argmin(low, at, lane, nl, 0)
         second = INF
         for q in range(k):
             if abs(lane + q * nl - best) > 1:
                 second = min(second, s[q])
-        second = lanes_argmin(second, 0, lane, nl, 1)[0]
+        second = lanes_argmin(second, int32(0), lane, nl, 1)[0]
         if lane != 0:
             return
         s_best[y, x] = low
@@ -277,7 +289,7 @@ def winners(total, subpixel=False, lr_check=False):
         gpu.launch(_right_winners, h * w, total, rbest)
     nl = lanes(nd)
     group = THREADS // nl
-    gpu.launch_blocks(_winner_kernel(nl, -(-nd // nl)), -(-h * w // group), (nl, group),
-                      exchange_bytes(1), total, rbest,
-                      bool(subpixel), 1 if lr_check else -1, out, consistent, s_best, s_second)
+    gpu.launch_blocks(_winner_kernel(nd), -(-h * w // group), (nl, group), exchange_bytes(1),
+                      total, rbest, bool(subpixel), 1 if lr_check else -1, out, consistent,
+                      s_best, s_second)
     return out, consistent, s_best, s_second
