@@ -10,12 +10,12 @@ group's first minimum: the WTA).
 Each has two bodies, chosen when this module is imported by what numba.cuda is in the process
 (`gpu.SIMULATED` says the same, but a test that compiles for a GPU without one sets it):
 warp shuffles within the group's mask on a GPU (no block barrier: groups step on
-independently), and shared memory with one block barrier under Numba's CUDA simulator,
-which has no shuffles. The simulator's body
-needs `exchange_bytes` of dynamic shared memory per block (0 on a GPU) and every live thread
-of the block to call the function the same number of times (the simulator's barrier waits
-for the block's live threads only, so a thread that has returned drops out). Minima are
-exact in any order, so both bodies give the same bits.
+independently), and shared memory with one block barrier a call under Numba's CUDA
+simulator, which has no shuffles. The simulator's body needs `exchange_bytes` of dynamic
+shared memory per block (0 on a GPU), and the block's threads to call it in step until they
+return (its barrier waits for the block's live threads: a thread that has returned drops
+out). Minima are exact in any order, so both bodies give the same bits. Blocks are
+(lanes, THREADS // lanes) threads: a group of 32 is then a whole warp.
 """
 import numba
 from numba import cuda, float32, njit
@@ -29,6 +29,11 @@ THREADS = gpu.THREADS  # per block: THREADS // lanes groups
 def lanes(nd):
     """Return the threads a path (or a WTA pixel) of D = `nd` disparities gets: 8, 16 or 32."""
     return min(WARP, max(8, 1 << (nd - 1).bit_length()))
+
+
+def per_lane(nd):
+    """Return the disparities each lane holds for D = `nd`: D / lanes(D), rounded up."""
+    return -(-nd // lanes(nd))
 
 
 if numba.config.ENABLE_CUDASIM:
@@ -90,7 +95,7 @@ else:
     @njit(inline='always')
     def _mask(lane, nl):
         """Return (the group's first lane in its warp, the group's lanes as a warp mask)."""
-        if nl == WARP:  # a constant mask: the compiler's convergence check is cheaper
+        if nl == WARP:  # the whole warp: a constant mask makes the convergence check cheaper
             return 0, 0xFFFFFFFF
         first = cuda.laneid - lane
         return first, ((1 << nl) - 1) << first

@@ -4,7 +4,7 @@ CUDA twin of sgm.py: path costs, their sum S and the winner-takes-all in GPU mem
 The layout of libSGM (Hernandez-Juarez et al. 2016, "Embedded real-time stereo estimation via
 Semi-Global Matching on the GPU"): a group of nl = `lanes(D)` threads of one warp (8, 16 or
 32) walks one path, lane l holding L_r(p, d) of d = l, l + nl, ... in registers (k = D / nl
-of them, rounded up; nl and k are constants of the kernel compiled for them). Neighbouring
+of them, rounded up; D, nl and k are constants of the kernel compiled for that D). Neighbouring
 lanes read and write neighbouring d of the (H, W, D) volume: a warp's load of 32 uint16
 costs touches two 32-byte sectors (four for float32). At each step a lane gets
 L_r(p - r, d -+ 1) from its cyclic neighbours and min_d L_r(p - r, d) of the group through
@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from . import gpu
-from .lanes_cuda import exchange, exchange_bytes, lanes, lanes_argmin, THREADS, WARP
+from .lanes_cuda import exchange, exchange_bytes, lanes, lanes_argmin, per_lane, THREADS, WARP
 from .sgm import parabola_offset, penalties, summation_order
 
 INF = np.float32(np.inf)
@@ -77,8 +77,7 @@ def _length(x, y, h, w, dx, dy):
 @cache
 def _path_kernel(nd):
     """Return the path kernel for volumes of `nd` disparities (a constant of its code)."""
-    nl = lanes(nd)
-    k = -(-nd // nl)  # disparities a lane holds
+    nl, k = lanes(nd), per_lane(nd)
     queue = AHEAD * k  # a constant for the local array's size
     full = nd == k * nl  # every lane's every d inside D
 
@@ -179,16 +178,16 @@ def aggregate(cost, p1, p2, paths, top, out=None):
     p1, p2 = penalties(gpu.numpy_type(cost), p1, p2, paths, top)
     total = torch.empty_like(cost) if out is None else out
     order = summation_order(paths)
-    group = THREADS // lanes(nd)
+    nl = lanes(nd)
+    group = THREADS // nl
     dirs, blocks = [], 0
     for dx, dy in order:
         dirs.append((dx, dy, blocks))
         blocks += -(-_starts(h, w, dx, dy) // group)
     dirs = torch.tensor(dirs, dtype=torch.int32).to(cost.device)
     lines = torch.empty((len(order) - 1,) + cost.shape, dtype=cost.dtype, device=cost.device)
-    gpu.launch_blocks(_path_kernel(nd), blocks, (lanes(nd), group),
-                      exchange_bytes(-(-nd // lanes(nd))), cost, total, lines, dirs,
-                      np.float32(p1), np.float32(p2))
+    gpu.launch_blocks(_path_kernel(nd), blocks, (nl, group), exchange_bytes(per_lane(nd)),
+                      cost, total, lines, dirs, np.float32(p1), np.float32(p2))
     gpu.launch(_path_sum, total.numel(), total.view(-1), lines.view(len(order) - 1, -1))
     return total
 
@@ -222,8 +221,7 @@ def _right_winners(total, rbest):
 @cache
 def _winner_kernel(nd):
     """Return the WTA kernel for volumes of `nd` disparities (a constant of its code)."""
-    nl = lanes(nd)
-    k = -(-nd // nl)  # disparities a lane holds
+    nl, k = lanes(nd), per_lane(nd)
 
     @cuda.jit
     def _winners(total, rbest, subpixel, lr_tol, out, consistent, s_best, s_second):
