@@ -1,39 +1,47 @@
 """
 CUDA twin of sgm.py: path costs, their sum S and the winner-takes-all in GPU memory.
 
-libSGM's layout (Hernandez-Juarez et al. 2016): a group of `lanes(D)` threads walks one
-path, lane l holding disparities d = l, l + lanes, ..., so a warp's loads of the (H, W, D)
-volume are coalesced; at each step a lane reads its neighbours' L_r(p - r, d +- 1) and the
-lanes' partial minima from shared memory, double-buffered by step parity (one barrier a
-step). The arithmetic is float32 for both volume types (uint16 sums stay below 2^17:
-exact), each L_r computed as (C - min L_r(p - r)) + the best predecessor term, the order
-in which the CPU's compiler evaluates `sgm._path_step`, so float32 path costs round alike
-(the simulator checks catch it if that order changes).
+The layout of libSGM (Hernandez-Juarez et al. 2016, "Embedded real-time stereo estimation via
+Semi-Global Matching on the GPU"): a group of nl = `lanes(D)` threads of one warp (8, 16 or
+32) walks one path, lane l holding L_r(p, d) of d = l, l + nl, ... in registers (k = D / nl
+of them, rounded up; D, nl and k are constants of the kernel compiled for that D). Neighbouring
+lanes read and write neighbouring d of the (H, W, D) volume: a warp's load of 32 uint16
+costs touches two 32-byte sectors (four for float32). At each step a lane gets
+L_r(p - r, d -+ 1) from its cyclic neighbours and min_d L_r(p - r, d) of the group through
+`lanes_cuda.exchange` (warp shuffles, no barrier: each group steps on by itself), and reads
+C of the pixel AHEAD steps on, so loads are in flight while the chain of steps runs. The
+arithmetic is float32 for both volume types (uint16 sums stay below 2^17: exact), each L_r
+computed as (C - min L_r(p - r)) + the best predecessor term: the order in which the CPU's
+compiler evaluates `sgm._path_step` (fastmath), so float32 path costs round alike (the
+simulator checks catch it if that order changes).
 
-All directions run in one launch (a block holds `gpu.THREADS // lanes` paths of one
-direction). S must equal the CPU's float32 sums, added in
-`sgm.summation_order`, so each direction writes its own L_r volume (the first into S) and
-a second kernel adds them in that order: paths - 1 volumes of working memory. The WTA puts
-the same lanes across the d of one pixel; the left-right check reads the right view's
-winners, found first by `_right_winners`. Penalties and limits are the CPU's
-(`sgm.penalties`). Layout, sizes and counts: doc/speed.md, "SGM and WTA on the GPU".
+All directions run in one launch, the long horizontal paths first (a block holds
+`gpu.THREADS // nl` paths of one direction). S must equal the CPU's float32 sums, which add
+the L_r in `sgm.summation_order`: float addition is not associative, so concurrent
+directions cannot add into S as they go (atomics would add in whatever order they arrive).
+Each direction writes its own L_r volume instead (the first into S itself), and a second
+kernel adds them in that order: paths - 1 extra volumes of the volume's type (1.8 GB for a
+uint16 KITTI volume at D = 128 and 16 paths) and about 2 (paths - 1) volumes more memory
+traffic than a sum in place. The penalties and limits are the CPU's (`sgm.penalties`).
+
+The WTA, with the same lanes across the d of one pixel, its S in registers: the first
+minimum and the least S outside best +- 1 by `lanes_cuda.lanes_argmin`, the sub-pixel fit of
+`sgm.parabola_offset`; the left-right check reads the right view's winners, which a kernel of
+their own finds first with lanes along a diagonal of the volume (see `_right_winners`), so
+that also reads coalesced.
 """
-from numba import cuda, float32, int32, njit
+from functools import cache
+
+from numba import cuda, float32, int32, njit, uint64
 import numpy as np
 import torch
 
 from . import gpu
+from .lanes_cuda import exchange, exchange_bytes, lanes, lanes_argmin, per_lane, THREADS, WARP
 from .sgm import parabola_offset, penalties, summation_order
 
-LANES = 32  # most threads per path and per WTA pixel: a warp
-THREADS = gpu.THREADS  # per block (a constant the kernels can size shared arrays with)
 INF = np.float32(np.inf)
-SHARED_BYTES = 48 * 1024  # the most dynamic shared memory a block gets without opting in
-
-
-def lanes(nd):
-    """Return the threads a path (or a WTA pixel) of D = `nd` disparities gets: 8, 16 or 32."""
-    return min(LANES, max(8, 1 << (nd - 1).bit_length()))
+AHEAD = 4  # steps whose costs a path's lanes read before the step that uses them
 
 
 @njit(inline='always')  # kernels call it too (it compiles for a GPU without one)
@@ -66,73 +74,83 @@ def _length(x, y, h, w, dx, dy):
     return n
 
 
-@cuda.jit
-def _paths(cost, total, lines, dirs, p1, p2):
-    """
-    Write L_r of every direction: the first into `total`, the k-th into lines[k - 1].
+@cache
+def _path_kernel(nd):
+    """Return the path kernel for volumes of `nd` disparities (a constant of its code)."""
+    nl, k = lanes(nd), per_lane(nd)
+    queue = AHEAD * k  # a constant for the local array's size
+    full = nd == k * nl  # every lane's every d inside D
 
-    `dirs` (n, 3): dx, dy and the first block of each direction. Block (lanes, group): its
-    `group` paths of one direction; dynamic shared memory per path: L_r(p - r, .) and the
-    lanes' minima of it, for two steps.
-    """
-    h, w, nd = cost.shape
-    nl, group = cuda.blockDim.x, cuda.blockDim.y
-    lane, j = cuda.threadIdx.x, cuda.threadIdx.y
-    blk = cuda.blockIdx.x
-    k = 0
-    while k + 1 < dirs.shape[0] and dirs[k + 1, 2] <= blk:
-        k += 1
-    dx, dy = dirs[k, 0], dirs[k, 1]
-    out = total if k == 0 else lines[k - 1]
-    n = _starts(h, w, dx, dy)
-    first = (blk - dirs[k, 2]) * group
-    longest = 0  # the block's longest path: all its threads pass as many barriers
-    steps = 0
-    x = y = 0
-    for i in range(group):
-        if first + i < n:
-            px, py = _start(first + i, h, w, dx, dy)
-            size = _length(px, py, h, w, dx, dy)
-            longest = max(longest, size)
-            if i == j:
-                x, y, steps = px, py, size
-    shared = cuda.shared.array(0, float32)
-    line = j * 2 * (nd + nl)  # L_r of step parity s at line + s * nd + d
-    mins = line + 2 * nd  # the lanes' minima at mins + s * nl + lane
-    if steps > 0:  # L_r = C where the path enters
+    @cuda.jit
+    def _paths(cost, total, lines, dirs, p1, p2):
+        """
+        Write L_r of every direction: the first into `total`, the j-th into lines[j - 1].
+
+        `dirs` (n, 3): dx, dy and the first block of each direction, in summation order.
+        Block (nl, group): `group` paths of one direction, nl lanes each.
+        """
+        h, w = cost.shape[:2]
+        lane = cuda.threadIdx.x
+        blk = cuda.blockIdx.x
+        r = 0
+        while r + 1 < dirs.shape[0] and dirs[r + 1, 2] <= blk:
+            r += 1
+        dx, dy = dirs[r, 0], dirs[r, 1]
+        path = (blk - dirs[r, 2]) * cuda.blockDim.y + cuda.threadIdx.y
+        if path >= _starts(h, w, dx, dy):
+            return
+        out = total if r == 0 else lines[r - 1]
+        x, y = _start(path, h, w, dx, dy)
+        steps = _length(x, y, h, w, dx, dy)
+        here = cuda.local.array(k, float32)  # L_r(p, d) at d = lane + i nl, inf past D
+        above = cuda.local.array(k, float32)  # here[i] of the lane before (d - 1), cyclic
+        below = cuda.local.array(k, float32)  # here[i] of the lane after (d + 1), cyclic
+        coming = cuda.local.array(queue, float32)  # C of the next AHEAD pixels
+        fresh = cuda.local.array(k, float32)
+        # Indices as uint64 (free casts of values >= 0): Numba then adds no negative-index
+        # wrap-around, and the compiler turns the path's addresses into increments.
+        dest = out[uint64(y), uint64(x)]
         low = INF
-        for d in range(lane, nd, nl):
-            c = cost[y, x, d]
-            out[y, x, d] = c
-            v = float32(c)
-            shared[line + d] = v
-            low = min(low, v)
-        shared[mins + lane] = low
-    cuda.syncthreads()
-    s = 0
-    for t in range(1, longest):
-        if t < steps:
+        for i in range(k):  # L_r = C where the path enters
+            d = lane + i * nl
+            here[i] = INF
+            if full or d < nd:
+                c = cost[uint64(y), uint64(x), uint64(d)]
+                dest[uint64(d)] = c
+                here[i] = float32(c)
+                low = min(low, here[i])
+                for a in range(AHEAD):
+                    if a + 1 < steps:
+                        coming[a * k + i] = cost[uint64(y + (a + 1) * dy),
+                                                 uint64(x + (a + 1) * dx), uint64(d)]
+        for t in range(1, steps):
+            if t + AHEAD < steps:  # the pixel AHEAD steps on, read before it is needed
+                ya, xa = uint64(y + (AHEAD + 1) * dy), uint64(x + (AHEAD + 1) * dx)
+                for i in range(k):
+                    d = lane + i * nl
+                    if full or d < nd:
+                        fresh[i] = cost[ya, xa, uint64(d)]
+            m = exchange(here, low, lane, nl, t, above, below)  # min_d L_r(p - r, d)
             x += dx
             y += dy
-            m = shared[mins + s * nl]  # min_d L_r(p - r, d)
-            for i in range(1, nl):
-                m = min(m, shared[mins + s * nl + i])
+            dest = out[uint64(y), uint64(x)]
             jump = m + p2
             low = INF
-            for d in range(lane, nd, nl):
-                prev = line + s * nd + d
-                best = min(shared[prev], jump)
-                if d > 0:
-                    best = min(best, shared[prev - 1] + p1)
-                if d + 1 < nd:
-                    best = min(best, shared[prev + 1] + p1)
-                v = (float32(cost[y, x, d]) - m) + best  # as the CPU's compiler orders it
-                out[y, x, d] = v
-                shared[line + (1 - s) * nd + d] = v
-                low = min(low, v)
-            shared[mins + (1 - s) * nl + lane] = low
-        cuda.syncthreads()
-        s = 1 - s
+            for i in range(k):
+                d = lane + i * nl
+                left = above[i] if lane > 0 else (above[i - 1] if i > 0 else INF)
+                right = below[i] if lane < nl - 1 else (below[i + 1] if i + 1 < k else INF)
+                if full or d < nd:
+                    best = min(min(here[i], jump), min(left, right) + p1)
+                    v = (coming[i] - m) + best  # as the CPU's compiler orders it
+                    dest[uint64(d)] = v
+                    here[i] = v
+                    low = min(low, v)
+                for a in range(AHEAD - 1):
+                    coming[a * k + i] = coming[(a + 1) * k + i]
+                coming[(AHEAD - 1) * k + i] = fresh[i]
+
+    return _paths
 
 
 @cuda.jit
@@ -161,16 +179,15 @@ def aggregate(cost, p1, p2, paths, top, out=None):
     total = torch.empty_like(cost) if out is None else out
     order = summation_order(paths)
     nl = lanes(nd)
-    per_path = 4 * 2 * (nd + nl)  # bytes of shared memory
-    group = max(1, min(THREADS // nl, SHARED_BYTES // per_path))
+    group = THREADS // nl
     dirs, blocks = [], 0
     for dx, dy in order:
         dirs.append((dx, dy, blocks))
         blocks += -(-_starts(h, w, dx, dy) // group)
     dirs = torch.tensor(dirs, dtype=torch.int32).to(cost.device)
     lines = torch.empty((len(order) - 1,) + cost.shape, dtype=cost.dtype, device=cost.device)
-    gpu.launch_blocks(_paths, blocks, (nl, group), group * per_path, cost, total, lines, dirs,
-                      np.float32(p1), np.float32(p2))
+    gpu.launch_blocks(_path_kernel(nd), blocks, (nl, group), exchange_bytes(per_lane(nd)),
+                      cost, total, lines, dirs, np.float32(p1), np.float32(p2))
     gpu.launch(_path_sum, total.numel(), total.view(-1), lines.view(len(order) - 1, -1))
     return total
 
@@ -188,11 +205,11 @@ def _right_winners(total, rbest):
     if i >= h * w:
         return
     y, xr = i // w, i % w
-    j = cuda.threadIdx.x % LANES
+    j = cuda.threadIdx.x % WARP
     top = min(nd, w - xr)
     best = 0
     low = INF
-    for t in range(LANES + nd - 1):  # the same count in every lane: they stay in step
+    for t in range(WARP + nd - 1):  # the same count in every lane: they stay in step
         d = t - j
         if 0 <= d < top:
             v = float32(total[y, xr + d, d])
@@ -201,57 +218,54 @@ def _right_winners(total, rbest):
     rbest[y, xr] = best
 
 
-@cuda.jit
-def _winners(total, rbest, subpixel, lr_tol, out, consistent, s_best, s_second):
-    """
-    Write the CPU's `sgm._wta` (first minimum on ties), S(best) and min S over |d - best| > 1.
+@cache
+def _winner_kernel(nd):
+    """Return the WTA kernel for volumes of `nd` disparities (a constant of its code)."""
+    nl, k = lanes(nd), per_lane(nd)
 
-    Block (lanes, group): `group` pixels, the lanes of one across its d. `rbest` is the right
-    view's winners (from `_right_winners`) when lr_tol >= 0.
-    """
-    h, w, nd = total.shape
-    nl, group = cuda.blockDim.x, cuda.blockDim.y
-    lane, j = cuda.threadIdx.x, cuda.threadIdx.y
-    i = cuda.blockIdx.x * group + j
-    inside = i < h * w
-    y, x = i // w, i % w
-    low, at = INF, nd
-    if inside:
-        for d in range(lane, nd, nl):
-            v = float32(total[y, x, d])
-            if v < low:
-                low, at = v, d
-    values = cuda.shared.array(THREADS, float32)
-    indices = cuda.shared.array(THREADS, int32)
-    seconds = cuda.shared.array(THREADS, float32)
-    values[j * nl + lane] = low
-    indices[j * nl + lane] = at
-    cuda.syncthreads()
-    low, best = values[j * nl], indices[j * nl]
-    for k in range(j * nl + 1, j * nl + nl):
-        if values[k] < low or (values[k] == low and indices[k] < best):
-            low, best = values[k], indices[k]
-    second = INF
-    if inside:
-        for d in range(lane, nd, nl):
-            v = float32(total[y, x, d])  # read by every lane: one load of the warp
-            if abs(d - best) > 1:
-                second = min(second, v)
-    seconds[j * nl + lane] = second
-    cuda.syncthreads()
-    if not inside or lane != 0:
-        return
-    for k in range(j * nl + 1, j * nl + nl):
-        second = min(second, seconds[k])
-    s_best[y, x] = low
-    s_second[y, x] = second
-    offset = 0.0
-    if subpixel and 0 < best < nd - 1:
-        offset = parabola_offset(total[y, x, best - 1], total[y, x, best], total[y, x, best + 1])
-    out[y, x] = best + offset
-    if lr_tol >= 0:  # the right view's winner at xr = x - best
-        xr = x - best
-        consistent[y, x] = xr >= 0 and abs(rbest[y, max(xr, 0)] - best) <= lr_tol
+    @cuda.jit
+    def _winners(total, rbest, subpixel, lr_tol, out, consistent, s_best, s_second):
+        """
+        Write the CPU's `sgm._wta` (first minimum on ties), S(best), min S over |d - best| > 1.
+
+        Block (nl, group): `group` pixels, the lanes of one across its d. `rbest` is the
+        right view's winners (from `_right_winners`) when lr_tol >= 0.
+        """
+        h, w = total.shape[:2]
+        lane = cuda.threadIdx.x
+        i = cuda.blockIdx.x * cuda.blockDim.y + cuda.threadIdx.y
+        if i >= h * w:
+            return
+        y, x = i // w, i % w
+        s = cuda.local.array(k, float32)  # S(d) at d = lane + q nl, inf past D
+        low, at = INF, int32(nd)  # int32: one shuffle a value
+        for q in range(k):
+            d = lane + q * nl
+            s[q] = INF
+            if d < nd:
+                s[q] = float32(total[y, x, d])
+                if s[q] < low:
+                    low, at = s[q], int32(d)
+        low, best = lanes_argmin(low, at, lane, nl, 0)
+        second = INF
+        for q in range(k):
+            if abs(lane + q * nl - best) > 1:
+                second = min(second, s[q])
+        second = lanes_argmin(second, int32(0), lane, nl, 1)[0]
+        if lane != 0:
+            return
+        s_best[y, x] = low
+        s_second[y, x] = second
+        offset = 0.0
+        if subpixel and 0 < best < nd - 1:
+            offset = parabola_offset(total[y, x, best - 1], total[y, x, best],
+                                     total[y, x, best + 1])
+        out[y, x] = best + offset
+        if lr_tol >= 0:  # the right view's winner at xr = x - best
+            xr = x - best
+            consistent[y, x] = xr >= 0 and abs(rbest[y, max(xr, 0)] - best) <= lr_tol
+
+    return _winners
 
 
 def winners(total, subpixel=False, lr_check=False):
@@ -273,6 +287,7 @@ def winners(total, subpixel=False, lr_check=False):
         gpu.launch(_right_winners, h * w, total, rbest)
     nl = lanes(nd)
     group = THREADS // nl
-    gpu.launch_blocks(_winners, -(-h * w // group), (nl, group), 0, total, rbest,
-                      bool(subpixel), 1 if lr_check else -1, out, consistent, s_best, s_second)
+    gpu.launch_blocks(_winner_kernel(nd), -(-h * w // group), (nl, group), exchange_bytes(1),
+                      total, rbest, bool(subpixel), 1 if lr_check else -1, out, consistent,
+                      s_best, s_second)
     return out, consistent, s_best, s_second
