@@ -37,7 +37,7 @@ CALIBRATION_BINS = ((0.2, 0.4), (0.4, 0.6), (0.6, 0.8), (0.8, 1.0))
 
 
 def test_confidence_streaming_equals_volume(net, tsukuba):
-    left, right = tsukuba.left[100:180], tsukuba.right[100:180]  # two strips
+    left, right = tsukuba.left[100:180, :383], tsukuba.right[100:180, :383]  # two strips, odd W
     assert STRIP_ROWS < 80
     cof_c, cof_d, cof_dr, vol = confidence(net, left, right, 24, volume=True)
     h, w = left.shape[:2]

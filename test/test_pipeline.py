@@ -282,7 +282,7 @@ def test_memory_estimate_bounds_the_measured_peak(motorcycle, radius):
     Check memory_bytes against the measured peak RSS of a frame after one of the same size.
 
     Measured (doc/failures.md, gcp-stereo-load --steps --pipeline): at 741x500, D 96, fp32
-    with the CNN's guided filter (radius 4) a peak of 332 MB against the bound's 436 MB.
+    with the CNN's guided filter (radius 4) a peak of 303 MB against the bound's 398 MB.
     """
     mmap_large_arrays()  # as the node and the bag tool do
     left, right, _ = motorcycle

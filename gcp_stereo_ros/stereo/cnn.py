@@ -35,13 +35,13 @@ import functools
 from pathlib import Path
 import time
 
-from numba import njit, prange
 import numpy as np
 import torch
 from torch import nn
 import torch.nn.functional as F
 
 from . import cnn_filter
+from .cnn_correlation import best_match, EPS, volume as correlation_volume
 from .cost import check_max_disp
 from .images import gray_pair, standardize
 from .weights import cnn_calibrations, weights_path
@@ -49,7 +49,6 @@ from .weights import cnn_calibrations, weights_path
 PATCH = 9
 FEATURES = 64
 PAD = PATCH // 2
-EPS = 1e-8
 STRIP_ROWS = 64
 
 
@@ -144,86 +143,6 @@ def calibrated(net, cosine, radius=0):
     j = (torch.searchsorted(xp, x, right=True) - 1).clamp_(0, len(xp) - 2)
     y = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]) * (x - xp[j]) + fp[j]
     return torch.where(x <= xp[0], fp[0], torch.where(x >= xp[-1], fp[-1], y)).float()
-
-
-@njit(inline='always', fastmath=True)
-def _dot(a, b):
-    s = np.float32(0.0)
-    for c in range(a.shape[0]):
-        s += a[c] * b[c]
-    return min(s, np.float32(1.0))  # a cosine; rounding may overshoot 1 by an ulp
-
-
-@njit(inline='always', fastmath=True)
-def _unit_rows(bits, shift, y):
-    """
-    Return rows y of both descriptor images as float32 (2, W, C), L2-normalized.
-
-    Each descriptor is divided by max(its L2 norm, EPS), as F.normalize does. `bits`:
-    (2, H, W, C) float32 bit patterns, as uint32 (`shift` 0) or as the upper halves of
-    bfloat16 values in uint16 (`shift` 16).
-    """
-    _, _, w, c = bits.shape
-    out = np.empty((2, w, c), np.float32)
-    out_bits = out.view(np.uint32)
-    for i in range(2):
-        for x in range(w):
-            s = np.float32(0.0)
-            for k in range(c):
-                out_bits[i, x, k] = np.uint32(bits[i, y, x, k]) << shift
-                s += out[i, x, k] * out[i, x, k]
-            inv = np.float32(1.0) / max(np.sqrt(s), np.float32(EPS))
-            for k in range(c):
-                out[i, x, k] *= inv
-    return out
-
-
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def _best_match(bits, shift, max_disp, cof_c, cof_d, cof_dr):
-    """
-    Stream max / first argmax over d of Vol(y, x, d) = <f_L[y, x], f_R[y, x - d]>.
-
-    They are written into (H, W) rows, and for each right pixel xr the first argmax over d
-    of Vol(y, xr + d, d).
-    """
-    _, h, w, _ = bits.shape
-    for y in prange(h):
-        f = _unit_rows(bits, shift, y)
-        vals = np.empty(max_disp, np.float32)
-        # Right-view max and argmax stored reversed, at w - 1 - xr: for one x, the right
-        # pixels x - d, d = 0, 1, ..., are then a forward run, which vectorizes.
-        right_best = np.full(w, np.float32(-1.0))
-        right_arg = np.zeros(w, np.int32)
-        for x in range(w):
-            n = min(max_disp, x + 1)
-            for d in range(n):
-                vals[d] = _dot(f[0, x], f[1, x - d])
-            best = vals[0]
-            arg = 0
-            for d in range(1, n):
-                if vals[d] > best:
-                    best = vals[d]
-                    arg = d
-            cof_c[y, x] = best
-            cof_d[y, x] = arg
-            run_best = right_best[w - 1 - x:]
-            run_arg = right_arg[w - 1 - x:]
-            for d in range(n):  # x, and so d, grows for a fixed x - d: first maximum kept
-                if vals[d] > run_best[d]:
-                    run_best[d] = vals[d]
-                    run_arg[d] = d
-        cof_dr[y] = right_arg[::-1]
-
-
-@njit(parallel=True, cache=True, fastmath=True)
-def _volume(bits, shift, vol):
-    """Write the (H, W, D) confidence volume into `vol`, same arithmetic as `_best_match`."""
-    _, h, w, _ = bits.shape
-    for y in prange(h):
-        f = _unit_rows(bits, shift, y)
-        for x in range(w):
-            for d in range(vol.shape[2]):
-                vol[y, x, d] = _dot(f[0, x], f[1, x - d]) if d <= x else np.float32(0.0)
 
 
 @functools.cache
@@ -380,12 +299,11 @@ def confidence(net, left, right, max_disp, bf16=False, volume=False, seconds=Non
             bits, shift = f.float().numpy().view(np.uint32), 0
         t1 = time.perf_counter()
         if radius:
-            _volume(bits, shift, strips.rows(y0, y1))
-            strips.filter_held()
+            strips.add(bits, shift, y0)
         else:
-            _best_match(bits, shift, max_disp, cof_c[y0:y1], cof_d[y0:y1], cof_dr[y0:y1])
+            best_match(bits, shift, max_disp, cof_c[y0:y1], cof_d[y0:y1], cof_dr[y0:y1])
         if volume:
-            _volume(bits, shift, vol[y0:y1])
+            correlation_volume(bits, shift, vol[y0:y1], 0, cof_dr[y0:y1])
         seconds['cnn'] += t1 - t
         seconds['confidence'] += time.perf_counter() - t1
     cof_c = calibrated(net, cof_c, radius)

@@ -20,22 +20,33 @@ what the CNN sees), p = Vol(., ., d) and mean() the mean over the window clipped
 
 Cells with x - d < 0 have Vol = 0 (as in `cnn`) and take part in the means; they are never
 a best disparity. A row of Vol' reads 2r rows of Vol above and below it (`halo`). On the
-CPU `StripFilter` takes the raw volume strip by strip as `cnn.confidence` computes it and
-keeps the 4r rows the next strip's outputs read, so each raw row is computed once
-(`filtered_best`; 2r rows of coefficients at each strip's edge twice); `cnn_cuda.
-filtered_best` is the torch twin. The kernels are compiled with fastmath, which assumes no
-infinities: every maximum starts from a real value.
+CPU `StripFilter` takes the CNN's descriptors strip by strip as `cnn.confidence` computes
+them: it correlates each strip's rows once into a ring of raw rows (`cnn_correlation.
+volume`, which also takes cof_dr), then filters them in one pass, block by block of columns,
+each block sliding its column sums down the rows and holding its last rows of a and b, so
+neither the coefficients nor Vol' are ever written out whole. `cnn_cuda.filtered_best` is
+the torch twin. The float32 sums are slid (a row or column enters, one leaves) in a fixed
+order, so the results do not depend on the number of threads; they equal the formula's
+within float rounding (cof_c within 2e-5 of float64; cof_d differs only where two
+disparities tie within that).
 """
 from numba import njit, prange
 import numpy as np
+
+from .cnn_correlation import first_argmax, volume
 
 # Of the guide's variance (1: the image is standardized). On the 14 validation frames a first
 # implementation (windows replicating the image's edge) gave Census+GCP 4.77, 4.76, 4.77 %
 # with 0.001, 0.01, 0.03 (radius 4, P2 128, every pixel published, integer disparities).
 GUIDE_EPS = 0.01
-# Rows of a band: the kernels' sums slide down each band and restart at the next (the
-# threads share the bands). A fixed height keeps the results independent of the threads.
+# Rows of a band: `box_means` slides its sums down each band and restarts at the next (the
+# threads share the bands), `StripFilter` recomputes its column sums every BAND_ROWS rows (a
+# bound on the rounding the slides accumulate). Fixed, it keeps the results independent of
+# the threads.
 BAND_ROWS = 16
+# Columns of a block of `StripFilter`'s pass (the threads share the blocks): the column sums
+# of its 2r columns either side are made twice, by it and its neighbour. Fixed, as BAND_ROWS.
+BLOCK_COLS = 128
 
 
 def halo(radius):
@@ -115,71 +126,6 @@ def box_means(src, weight, radius, means, weighted, blocks):
                     weighted[y, x, c] = acc2[c] * inv
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def _coefficients(vol, guide, mean_i, var_i, radius, first, a, b, blocks):
-    """Write a and b (the module's formula) of the rows first.. of vol into a and b."""
-    n, w, nd = vol.shape
-    rows = a.shape[0]
-    for band in prange(blocks):
-        col_p, col_ip = np.empty((w, nd), np.float32), np.empty((w, nd), np.float32)
-        acc_p, acc_ip = np.empty(nd, np.float32), np.empty(nd, np.float32)
-        for i in range(band * rows // blocks, (band + 1) * rows // blocks):
-            y = first + i
-            count = _slide(n, radius, y, i == band * rows // blocks, vol, vol, guide, col_p,
-                           col_ip)
-            for x in range(w):
-                _across(col_ip, x, radius, acc_ip)
-                inv_n = np.float32(1.0) / np.float32(count * _across(col_p, x, radius, acc_p))
-                mi = mean_i[y, x]
-                inv = np.float32(1.0) / (var_i[y, x] + np.float32(GUIDE_EPS))
-                for d in range(nd):
-                    mp = acc_p[d] * inv_n
-                    ai = (acc_ip[d] * inv_n - mi * mp) * inv
-                    a[i, x, d] = ai
-                    b[i, x, d] = mp - ai * mi
-
-
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def _best(a, b, raw, guide, radius, first, cof_c, cof_d, cof_dr, blocks):
-    """
-    Write max / first argmax over d of Vol' of the rows first.. of a and b (and guide).
-
-    And the right view's argmax over d of the raw volume, whose rows `raw` are the outputs'.
-    """
-    n, w, nd = a.shape
-    rows = cof_c.shape[0]
-    ones = np.ones((n, w), np.float32)
-    for band in prange(blocks):
-        col_a, col_b = np.empty((w, nd), np.float32), np.empty((w, nd), np.float32)
-        acc_a, acc_b = np.empty(nd, np.float32), np.empty(nd, np.float32)
-        right_best = np.empty(w, np.float32)
-        right_arg = np.empty(w, np.int32)
-        for i in range(band * rows // blocks, (band + 1) * rows // blocks):
-            y = first + i
-            count = _slide(n, radius, y, i == band * rows // blocks, a, b, ones, col_a, col_b)
-            right_best[:] = -1.0  # below every raw cosine
-            right_arg[:] = 0
-            for x in range(w):
-                _across(col_b, x, radius, acc_b)
-                inv_n = np.float32(1.0) / np.float32(count * _across(col_a, x, radius, acc_a))
-                g = guide[y, x] * inv_n
-                best = acc_a[0] * g + acc_b[0] * inv_n
-                arg = 0
-                for d in range(min(nd, x + 1)):
-                    v = acc_a[d] * g + acc_b[d] * inv_n
-                    if v > best:
-                        best = v
-                        arg = d
-                    r = raw[i, x, d]
-                    if r > right_best[x - d]:  # x, so d, grows for a fixed x - d: first max
-                        right_best[x - d] = r
-                        right_arg[x - d] = d
-                cof_c[i, x] = best
-                cof_d[i, x] = arg
-            for x in range(w):
-                cof_dr[i, x] = right_arg[x]
-
-
 def guide_stats(guide, radius):
     """Return the window means of I and its variance, float32 (H, W) each, of I (float32)."""
     mean, square = (np.empty(guide.shape + (1,), np.float32) for _ in range(2))
@@ -188,33 +134,9 @@ def guide_stats(guide, radius):
     return mean, np.maximum(square[..., 0] - mean * mean, 0)
 
 
-def filtered_best(vol, guide, stats, radius, first, cof_c, cof_d, cof_dr, work):
-    """
-    Write cof_c (not calibrated), cof_d, cof_dr of a strip from its raw volume, on the CPU.
-
-    `vol`: float32 (rows, W, D), the raw volume of the strip's rows and of up to `halo`
-    rows above and below it (fewer at the image's edges); `guide` and `stats` (mean_i,
-    var_i: `guide_stats` of the whole image) for the same rows; `first`: the strip's first
-    row in vol; the outputs are (strip rows, W). `work`: a float32 array of at least
-    2 (vol rows) W D values to hold the filter's coefficients.
-    """
-    lo = max(0, first - radius)
-    hi = min(vol.shape[0], first + cof_c.shape[0] + radius)
-    size = (hi - lo) * vol.shape[1] * vol.shape[2]
-    a, b = (work[k * size:(k + 1) * size].reshape((hi - lo,) + vol.shape[1:]) for k in (0, 1))
-    _coefficients(vol, guide, *stats, radius, lo, a, b, _blocks(hi - lo))
-    _best(a, b, vol[first:first + cof_c.shape[0]], guide[lo:hi], radius, first - lo, cof_c,
-          cof_d, cof_dr, _blocks(cof_c.shape[0]))
-
-
-def scratch_size(height, width, max_disp, radius, strip_rows):
-    """Return the float32 values a `StripFilter` holds: three arrays of its rows of the volume."""
-    return 3 * min(height, strip_rows + 2 * halo(radius)) * width * max_disp
-
-
 def _blocks(rows):
     """
-    Return the bands of `rows` rows the kernels slide their sums down, BAND_ROWS each.
+    Return the bands of `rows` rows `box_means` slides its sums down, BAND_ROWS each.
 
     The threads share the bands; the sums restart at each band, so a fixed band height makes
     the float32 results the same whatever the number of threads (a machine with more cores,
@@ -223,49 +145,230 @@ def _blocks(rows):
     return max(1, -(-rows // BAND_ROWS))
 
 
+@njit(inline='always', fastmath=True)
+def _enter(ring, q1, q2, col, sums, s, lx, y, radius, guide, x):
+    """
+    Slide the column sums sums[s], sums[s + 1] at block column lx down to row y.
+
+    They sum the rows y - 2r .. y (clipped) of ring[q1] and ring[q2] at column `col` (row
+    y' in slot y' % their rows), ring[q2]'s times guide[y', x] unless `guide` is None: those
+    of y - 1 with row y added and y - 2r - 1 removed, recomputed every BAND_ROWS-th row.
+    """
+    n, nd = ring.shape[1], ring.shape[3]
+    new = y % n
+    g = guide[y, x] if guide is not None else np.float32(1.0)
+    if y % BAND_ROWS == 0:
+        for d in range(nd):
+            sums[s, lx, d] = 0
+            sums[s + 1, lx, d] = 0
+        for yy in range(max(0, y - 2 * radius), y + 1):
+            gy = guide[yy, x] if guide is not None else np.float32(1.0)
+            for d in range(nd):
+                sums[s, lx, d] += ring[q1, yy % n, col, d]
+                sums[s + 1, lx, d] += gy * ring[q2, yy % n, col, d]
+    elif y > 2 * radius:
+        old = (y - 2 * radius - 1) % n
+        go = guide[y - 2 * radius - 1, x] if guide is not None else np.float32(1.0)
+        for d in range(nd):
+            sums[s, lx, d] += ring[q1, new, col, d] - ring[q1, old, col, d]
+            sums[s + 1, lx, d] += g * ring[q2, new, col, d] - go * ring[q2, old, col, d]
+    else:
+        for d in range(nd):
+            sums[s, lx, d] += ring[q1, new, col, d]
+            sums[s + 1, lx, d] += g * ring[q2, new, col, d]
+
+
+@njit(inline='always', fastmath=True)
+def _leave(ring, q1, q2, col, sums, s, lx, y, guide, x):
+    """Remove row y of ring[q1], ring[q2] (as `_enter` adds it) from sums[s], sums[s + 1]."""
+    slot = y % ring.shape[1]
+    g = guide[y, x] if guide is not None else np.float32(1.0)
+    for d in range(ring.shape[3]):
+        sums[s, lx, d] -= ring[q1, slot, col, d]
+        sums[s + 1, lx, d] -= g * ring[q2, slot, col, d]
+
+
+@njit(inline='always', fastmath=True)
+def _row_sums(sums, s, x, off, w, radius, first, acc):
+    """
+    Return how to slide acc[0], acc[1] from the window of x - 1 to that of x.
+
+    They sum sums[s], sums[s + 1] over the columns |x' - x| <= r clipped to the image's w
+    (block column = image column - off). The caller adds column `cin` times `enter` and
+    subtracts `cout` times `leave`; where `first` they are summed from scratch here and both
+    weights are 0. Returns (cin, enter, cout, leave, the number of columns in the window).
+    """
+    lo, hi = max(0, x - radius), min(w - 1, x + radius)
+    zero, one = np.float32(0.0), np.float32(1.0)
+    if not first:
+        return (hi - off, one if x + radius < w else zero, max(0, x - radius - 1) - off,
+                one if x - radius - 1 >= 0 else zero, hi - lo + 1)
+    for d in range(sums.shape[2]):
+        acc[0, d] = 0
+        acc[1, d] = 0
+    for xx in range(lo - off, hi + 1 - off):
+        for d in range(sums.shape[2]):
+            acc[0, d] += sums[s, xx, d]
+            acc[1, d] += sums[s + 1, xx, d]
+    return lo - off, zero, lo - off, zero, hi - lo + 1
+
+
+@njit(inline='always', fastmath=True)
+def _coefficient_row(y, lo, hi, off, h, w, guide, mean_i, var_i, radius, held, sums, acc):
+    """
+    Hold a and b (the module's formula) of row y, columns lo..hi, and slide their sums.
+
+    As `_enter` slides them, in the same loop where no restart is due.
+    """
+    rows = min(h - 1, y + radius) - max(0, y - radius) + 1
+    slot, old = y % held.shape[1], (y - 2 * radius - 1) % held.shape[1]
+    fused = y % BAND_ROWS != 0 and y > 2 * radius
+    for x in range(lo, hi):
+        lx = x - off
+        cin, enter, cout, leave, cols = _row_sums(sums, 0, x, off, w, radius, x == lo, acc)
+        inv_n = np.float32(1.0) / np.float32(rows * cols)
+        mi = mean_i[y, x]
+        inv = np.float32(1.0) / (var_i[y, x] + np.float32(GUIDE_EPS))
+        for d in range(held.shape[3]):
+            p = acc[0, d] + (enter * sums[0, cin, d] - leave * sums[0, cout, d])
+            ip = acc[1, d] + (enter * sums[1, cin, d] - leave * sums[1, cout, d])
+            acc[0, d] = p
+            acc[1, d] = ip
+            mp = p * inv_n
+            a = (ip * inv_n - mi * mp) * inv
+            held[0, slot, lx, d] = a
+            held[1, slot, lx, d] = mp - a * mi
+        if fused:
+            for d in range(held.shape[3]):
+                sums[2, lx, d] += held[0, slot, lx, d] - held[0, old, lx, d]
+                sums[3, lx, d] += held[1, slot, lx, d] - held[1, old, lx, d]
+        else:
+            _enter(held, 0, 1, lx, sums, 2, lx, y, radius, None, x)
+
+
+@njit(inline='always', fastmath=True)
+def _output_row(y, x0, x1, off, h, w, guide, radius, sums, acc, keys, cof_c, cof_d):
+    """
+    Write max / first argmax over d <= x of Vol' of row y, columns x0..x1.
+
+    Vol' is written into acc[2] (`keys`: acc viewed as int32).
+    """
+    rows = min(h - 1, y + radius) - max(0, y - radius) + 1
+    for x in range(x0, x1):
+        cin, enter, cout, leave, cols = _row_sums(sums, 2, x, off, w, radius, x == x0, acc)
+        inv_n = np.float32(1.0) / np.float32(rows * cols)
+        g = guide[y, x] * inv_n
+        for d in range(sums.shape[2]):
+            mean_a = acc[0, d] + (enter * sums[2, cin, d] - leave * sums[2, cout, d])
+            mean_b = acc[1, d] + (enter * sums[3, cin, d] - leave * sums[3, cout, d])
+            acc[0, d] = mean_a
+            acc[1, d] = mean_b
+            acc[2, d] = mean_a * g + mean_b * inv_n
+        arg = first_argmax(keys, 2, min(sums.shape[2], x + 1))
+        cof_c[y, x] = acc[2, arg]
+        cof_d[y, x] = arg
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def _filter_rows(raw, y0, y1, guide, mean_i, var_i, radius, held, sums, acc, cof_c, cof_d):
+    """
+    Filter the raw rows y0..y1 (row y in raw[y % its rows]), block by block of columns.
+
+    Each block holds its last 2r + 2 rows of the coefficients and the column sums of both
+    (`held`, `sums`) from one call to the next: the output rows lag the raw ones by 2r, all
+    written when y1 is the image's last row.
+    """
+    (h, w), nb = guide.shape, held.shape[0]
+    for blk in prange(nb):
+        x0 = blk * BLOCK_COLS
+        x1 = min(w, x0 + BLOCK_COLS)
+        off = x0 - 2 * radius  # block column of image column x: x - off
+        lo, hi = max(0, off), min(w, x1 + 2 * radius)  # the raw volume's columns
+        lo_c, hi_c = max(0, x0 - radius), min(w, x1 + radius)  # the coefficients'
+        held_b, sums_b, acc_b = held[blk], sums[blk], acc[blk]
+        keys, ring = acc_b.view(np.int32), raw.reshape((1,) + raw.shape)
+        for y in range(y0, y1):
+            for x in range(lo, hi):
+                _enter(ring, 0, 0, x, sums_b, 0, x - off, y, radius, guide, x)
+            if y >= radius:
+                _coefficient_row(y - radius, lo_c, hi_c, off, h, w, guide, mean_i, var_i,
+                                 radius, held_b, sums_b, acc_b)
+            if y >= 2 * radius:
+                _output_row(y - 2 * radius, x0, x1, off, h, w, guide, radius, sums_b, acc_b,
+                            keys, cof_c, cof_d)
+        if y1 < h:
+            continue
+        for y in range(max(0, h - radius), h):  # the rows below the image are none
+            for x in range(lo, hi):
+                if y - radius - 1 >= 0:
+                    _leave(ring, 0, 0, x, sums_b, 0, x - off, y - radius - 1, guide, x)
+            _coefficient_row(y, lo_c, hi_c, off, h, w, guide, mean_i, var_i, radius, held_b,
+                             sums_b, acc_b)
+            if y >= radius:
+                _output_row(y - radius, x0, x1, off, h, w, guide, radius, sums_b, acc_b,
+                            keys, cof_c, cof_d)
+        for y in range(max(0, h - radius), h):
+            for x in range(lo_c, hi_c):
+                if y - radius - 1 >= 0:
+                    _leave(held_b, 0, 1, x - off, sums_b, 2, x - off, y - radius - 1, None, x)
+            _output_row(y, x0, x1, off, h, w, guide, radius, sums_b, acc_b, keys, cof_c,
+                        cof_d)
+
+
+def _layout(width, max_disp, radius, strip_rows):
+    """Return the shapes of a `StripFilter`'s accumulators, raw rows, coefficients and sums."""
+    blocks, span = -(-width // BLOCK_COLS), BLOCK_COLS + 4 * radius
+    padded = -(-max_disp // 16) * 16  # each accumulator on a 64-byte line
+    return ((blocks, 3, padded), (strip_rows + 2 * radius + 1, width, max_disp),
+            (blocks, 2, 2 * radius + 2, span, max_disp), (blocks, 4, span, max_disp))
+
+
+def scratch_size(height, width, max_disp, radius, strip_rows):
+    """
+    Return the float32 values a `StripFilter` holds.
+
+    The raw volume of a strip of min(height, strip_rows) rows and of the 2r + 1 rows before
+    it; per block of columns, the last 2r + 2 rows of the two coefficients and the column
+    sums of both.
+    """
+    shapes = _layout(width, max_disp, radius, min(height, strip_rows))
+    return sum(int(np.prod(s)) for s in shapes) + 16
+
+
 class StripFilter:
     """
-    Filters the raw volume of an image as its strips of rows come, on the CPU.
+    Correlates and filters the CNN descriptors of an image as its strips of rows come.
 
-    For each strip, `rows` gives the array to write its raw volume rows into; `filter_held`
-    then writes the outputs of every row whose halo below has come (all rows after the
-    last strip) into cof_c (raw), cof_d and cof_dr, (H, W) each. The volume of a strip and
-    the 4r rows before it are held, so each raw row is computed once. `scratch`: a float32
-    array of at least `scratch_size` values to hold them and the filter's coefficients
-    (allocated if None; a caller that keeps one between images spares the page faults of
-    fresh memory).
+    `add` takes each strip's raw descriptors (`cnn_correlation`'s bits), writes its rows of
+    cof_dr and the outputs of every row whose rows below have come (all rows at the last
+    strip) into cof_c (raw), cof_d, (H, W) each. `scratch`: a float32 array of at least
+    `scratch_size` values for what it holds between strips (allocated if None; a caller
+    that keeps one between images spares the page faults of fresh memory).
     """
 
     def __init__(self, guide, radius, max_disp, strip_rows, cof_c, cof_d, cof_dr,
                  scratch=None):
         h, w = guide.shape
-        self.guide = np.ascontiguousarray(guide, np.float32)  # for every strip's kernels
+        self.guide = np.ascontiguousarray(guide, np.float32)
         self.radius, self.outputs = radius, (cof_c, cof_d, cof_dr)
         self.stats = guide_stats(self.guide, radius)
-        self.carry = 2 * halo(radius)  # the rows the next strip's first output reads above
         size = scratch_size(h, w, max_disp, radius, strip_rows)
-        scratch = np.empty(size, np.float32) if scratch is None else scratch
-        self.buffer = scratch[:size // 3].reshape(-1, w, max_disp)
-        self.work = scratch[size // 3:size]
-        self.top = self.end = self.done = 0  # image rows: buffer[0], after the last, output
+        scratch = np.empty(size, np.float32) if scratch is None else scratch[:size]
+        start = -scratch.ctypes.data % 64 // 4  # the accumulators' lines aligned
+        self.arrays = []
+        for shape in _layout(w, max_disp, radius, min(h, strip_rows)):
+            n = int(np.prod(shape))
+            self.arrays.append(scratch[start:start + n].reshape(shape))
+            start += n
 
-    def rows(self, y0, y1):
-        """Return the (y1 - y0, W, D) array for the raw rows y0..y1 (y0: the last strip's end)."""
-        if self.end - self.top > self.carry:  # (numpy copies overlapping rows right)
-            self.buffer[:self.carry] = self.buffer[self.end - self.top - self.carry:
-                                                   self.end - self.top]
-            self.top = self.end - self.carry
-        self.end = y1
-        return self.buffer[y0 - self.top:y1 - self.top]
-
-    def filter_held(self):
-        """Write the outputs of the rows whose volume below is held."""
-        h = self.guide.shape[0]
-        stop = h if self.end == h else self.end - halo(self.radius)
-        if stop <= self.done:
-            return
-        held = slice(self.top, self.end)
-        filtered_best(self.buffer[:self.end - self.top], self.guide[held],
-                      [s[held] for s in self.stats], self.radius, self.done - self.top,
-                      *(a[self.done:stop] for a in self.outputs), self.work)
-        self.done = stop
+    def add(self, bits, shift, y0):
+        """Correlate and filter rows y0.. (at most strip_rows), whose descriptors `bits` holds."""
+        acc, raw, held, sums = self.arrays
+        cof_c, cof_d, cof_dr = self.outputs
+        y1 = y0 + bits.shape[1]
+        if y1 - y0 > raw.shape[0] - 2 * self.radius - 1:
+            raise ValueError(f'a strip of {y1 - y0} rows, more than the {raw.shape[0]} held rows '
+                             f'less 2r + 1')
+        volume(bits, shift, raw, y0 % raw.shape[0], cof_dr[y0:y1])  # row y in raw[y % rows]
+        _filter_rows(raw, y0, y1, self.guide, *self.stats, self.radius, held, sums, acc, cof_c,
+                     cof_d)
