@@ -17,27 +17,14 @@ from .disparity_confidence import ConfidenceFit, features, margin
 from .images import gray_pair
 from .memory import call_glibc
 from .postprocess import invalidate
-from .stages import Backend, Buffers, CnnConfidence, CostVolume, Winners
+from .stages import Backend, Buffers, CnnConfidence, CostVolume, KeptBuffers, Winners
 
 
-class CpuBackend:
+class CpuBackend(KeptBuffers):
     """The stages on the CPU: numba kernels (threads: numba's), torch for the CNN."""
 
     host = True
     torch_device: Any = 'cpu'
-
-    def __init__(self) -> None:
-        """Start with no kept buffers."""
-        self.kept: dict[str, np.ndarray] = {}
-
-    def _fitting(self, name: str, shape: tuple[int, ...],
-                 dtype: np.dtype | type) -> np.ndarray | None:
-        """Return the kept array `name` if it has `shape` and `dtype`; else let it go."""
-        a = self.kept.pop(name, None)
-        if a is not None and a.shape == shape and a.dtype == dtype:
-            self.kept[name] = a
-            return a
-        return None
 
     def buffers(self, shape: tuple[int, ...], dtype: np.dtype, scratch: int) -> Buffers:
         """Return the kept buffers that fit, letting go of the others first."""
@@ -46,10 +33,6 @@ class CpuBackend:
         if scratch and rows is None:
             rows = np.empty(scratch, np.float32)
         return Buffers(cost_, total, rows if scratch else None)
-
-    def keep(self, buffers: Buffers) -> None:
-        """Keep the buffers that are not None."""
-        self.kept.update((k, v) for k, v in buffers._asdict().items() if v is not None)
 
     def release(self) -> None:
         """Let go of the kept buffers, and of the heap blocks they were."""

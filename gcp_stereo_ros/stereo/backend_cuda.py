@@ -14,7 +14,7 @@ from . import (cnn_cuda, cost_cuda, disparity_confidence_cuda, gcp_cuda, gpu, po
                sgm_cuda)
 from .cnn import padded_input
 from .cost import max_cost
-from .stages import Buffers, CnnConfidence, CostVolume, Winners
+from .stages import Buffers, CnnConfidence, CostVolume, KeptBuffers, Winners
 
 CNN_TYPES = (np.float32, np.int32, np.int32)  # of cof_c, cof_d, cof_dr
 ALIGN = 16  # bytes: where each array of a download starts
@@ -33,7 +33,7 @@ def standardize(pair):
     return (pair - mean.float()[:, None, None]) / std.float()[:, None, None]
 
 
-class CudaBackend:
+class CudaBackend(KeptBuffers):
     """The stages on the GPU `device` ('cuda' or 'cuda:N'); checked when made."""
 
     host = False
@@ -42,25 +42,14 @@ class CudaBackend:
         """Use `device`; ValueError unless numba-cuda and torch can both use it."""
         gpu.check_device(device)
         self.device = device
+        super().__init__()
         self.torch_device = gpu.torch_device(device)
-        self.kept: dict[str, torch.Tensor] = {}
-
-    def _fitting(self, name, shape, dtype):
-        a = self.kept.pop(name, None)
-        if a is not None and tuple(a.shape) == shape and a.dtype == dtype:
-            self.kept[name] = a
-            return a
-        return None
 
     def buffers(self, shape, dtype, scratch):
         """Return the kept volumes that fit (the GPU's CNN needs no scratch)."""
         vtype = gpu.VOLUME_TYPES[np.dtype(dtype)]
         return Buffers(self._fitting('cost', shape, vtype), self._fitting('total', shape, vtype),
                        None)
-
-    def keep(self, buffers):
-        """Keep the buffers that are not None."""
-        self.kept.update((k, v) for k, v in buffers._asdict().items() if v is not None)
 
     def release(self):
         """Let go of the kept volumes (torch's caching allocator keeps their memory)."""

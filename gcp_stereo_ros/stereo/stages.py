@@ -49,6 +49,26 @@ class Buffers(NamedTuple):
     scratch: Array | None  # float32 rows of the CPU's CNN filter (`cnn_filter.StripFilter`)
 
 
+class KeptBuffers:
+    """The buffers a backend keeps from one pair for the next, by name; both backends'."""
+
+    def __init__(self) -> None:
+        """Start with none kept."""
+        self.kept: dict[str, Array] = {}
+
+    def _fitting(self, name: str, shape: tuple[int, ...], dtype: Any) -> Array | None:
+        """Return the kept buffer `name` if it has `shape` and `dtype`; else let it go."""
+        a = self.kept.pop(name, None)
+        if a is not None and tuple(a.shape) == shape and a.dtype == dtype:
+            self.kept[name] = a
+            return a
+        return None
+
+    def keep(self, buffers: Buffers) -> None:
+        """Keep the buffers that are not None."""
+        self.kept.update((k, v) for k, v in buffers._asdict().items() if v is not None)
+
+
 class Backend(Protocol):
     """
     The stages of `StereoPipeline` on one device, in the order it runs them.
