@@ -225,7 +225,7 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
     within float rounding.
     """
     for kind, paths in (('census', 16), ('sad', 8)):
-        cfg = StereoConfig.for_cost(kind, 'paper', max_disp=ND, paths=paths, bf16=False,
+        cfg = StereoConfig.for_cost(kind, 'paper', max_disp=ND, paths=paths, precision='fp32',
                                     gcp_lr_check=True, subpixel=True)
         on_cpu = StereoPipeline(cfg)
         cpu = on_cpu(*crop, cnn=cnn)
@@ -252,7 +252,7 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
         assert {'upload', 'cost', 'refine', 'sgm', 'wta', 'invalidate', 'download'} <= set(
             result.seconds)
     # plain SGM for gcp_plain_check and plain_check, into the path sums the GCPs' SGM reuses
-    cfg = StereoConfig.for_cost('census', 'paper', max_disp=ND, paths=4, bf16=False,
+    cfg = StereoConfig.for_cost('census', 'paper', max_disp=ND, paths=4, precision='fp32',
                                 plain_check=1.0, gcp_plain_check=True)
     cpu = StereoPipeline(cfg)(*crop, cnn=cnn)
     result = pipe.with_config(cfg.replace(device='cuda'))(*crop, cnn=cnn)
@@ -261,8 +261,9 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
     assert np.isnan(cpu.disparity).mean() > 0.001 and 'plain_sgm' in result.seconds
     unchecked = StereoPipeline(cfg.replace(gcp_plain_check=False))(*crop, cnn=cnn)
     assert cpu.gcp.sum() < unchecked.gcp.sum()
-    own_cnn = pipe.with_config(StereoConfig.for_cost('census', max_disp=ND, paths=4, bf16=False,
-                                                     cnn_filter_radius=0, device='cuda'))
+    own_cnn = pipe.with_config(StereoConfig.for_cost('census', max_disp=ND, paths=4,
+                                                     precision='fp32', cnn_filter_radius=0,
+                                                     device='cuda'))
     own = own_cnn(*crop, timed=True)
     np.testing.assert_allclose(own.cof_c, cnn[0], atol=2e-5)  # as in test_cnn
     assert np.mean(own.cof_d != cnn[1]) < 0.01
@@ -271,7 +272,7 @@ def test_cuda_pipeline_equals_cpu(crop, cnn):
     assert not {'cnn', 'confidence'} & set(untimed.seconds)
     np.testing.assert_array_equal(untimed.disparity, own.disparity)
     # with the CNN's guided filter (as in test_cnn_filter: near-ties may flip)
-    cfg = StereoConfig(max_disp=ND, paths=4, bf16=False, cnn_filter_radius=4)
+    cfg = StereoConfig(max_disp=ND, paths=4, precision='fp32', cnn_filter_radius=4)
     filtered = pipe.with_config(cfg.replace(device='cuda'))(*crop)
     want = confidence(load_net(), *crop, ND, radius=cfg.cnn_filter_radius)
     np.testing.assert_allclose(filtered.cof_c, want[0], atol=1e-3)
@@ -311,7 +312,7 @@ GPU_FRAMES = ['kitti2012/000070_10'] + [f'kitti2015/{n:06d}_10' for n in range(3
 @pytest.mark.parametrize('name', GPU_FRAMES)
 def test_gpu_publishes_the_cpus_pixels_on_whole_frames(data_dir, name):
     frame = load_frame(data_dir, name)
-    cfg = StereoConfig(max_disp=frame.max_disp, bf16=False)
+    cfg = StereoConfig(max_disp=frame.max_disp, precision='fp32')
     cpu = StereoPipeline(cfg)(frame.left, frame.right)
     result = StereoPipeline(cfg.replace(device='cuda'))(frame.left, frame.right, cnn=cpu.cnn)
     np.testing.assert_array_equal(result.gcp, cpu.gcp)

@@ -37,7 +37,7 @@ def field(kitti70, request):
     disparity); the summed costs uint16 (C_low 2) or float32 (C_low 1.2345).
     """
     crop = [np.ascontiguousarray(g[150:190, 300:396]) for g in kitti70]
-    cfg = StereoConfig(max_disp=32, paths=4, bf16=False, c_low=request.param, **UNFILTERED)
+    cfg = StereoConfig(max_disp=32, paths=4, precision='fp32', c_low=request.param, **UNFILTERED)
     pipe = StereoPipeline(cfg)
     won = pipe(*crop)
     plain = StereoPipeline(cfg.replace(use_gcp=False, subpixel=False))(*crop).disparity
@@ -176,7 +176,7 @@ def test_cuda_pipeline_invalidates_as_the_cpu(kitti70):
     """
     crop = [np.ascontiguousarray(g[184:200, 408:456]) for g in kitti70]
     cnn = confidence(load_net(), *crop, ND)
-    cfg = StereoConfig(max_disp=ND, paths=4, bf16=False, lr_check=True, min_depth=33.0,
+    cfg = StereoConfig(max_disp=ND, paths=4, precision='fp32', lr_check=True, min_depth=33.0,
                        max_depth=38.0, speckle_size=20)
     want = StereoPipeline(cfg)(*crop, cnn=cnn, camera=KITTI_CAMERA)
     pipe = StereoPipeline(cfg.replace(device='cuda'))

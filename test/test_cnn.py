@@ -78,15 +78,15 @@ def test_forward_matches_dense_descriptors(net, tsukuba):
         net(patches[0][:, :, :7, :7], patches[1])
 
 
-@pytest.mark.parametrize('bf16', [False, True])
-def test_fused_conv_relu_equals_the_plain_ops(net, tsukuba, bf16, monkeypatch):
+@pytest.mark.parametrize('precision', ['fp32', 'bf16'])
+def test_fused_conv_relu_equals_the_plain_ops(net, tsukuba, precision, monkeypatch):
     """The oneDNN conv+ReLU primitive (CPU) against conv2d then ReLU (what a GPU runs)."""
     x = network_input(*gray_pair(tsukuba.left[:40, :60], tsukuba.right[:40, :60]))
-    fused = descriptors(net, x, bf16)
+    fused = descriptors(net, x, precision)
     monkeypatch.setattr(torch.backends.mkldnn, 'is_available', lambda: False)
-    plain = descriptors(net, x, bf16)
+    plain = descriptors(net, x, precision)
     assert fused.shape == plain.shape == (2, 40, 60, 64) and fused.dtype == plain.dtype
-    if bf16:  # each output rounded to bfloat16 once, from float32 sums in either order
+    if precision == 'bf16':  # each output rounded to bfloat16 once, from float32 sums, any order
         torch.testing.assert_close(fused.float(), plain.float(), rtol=1e-2, atol=1e-2)
     else:
         torch.testing.assert_close(fused, plain, rtol=1e-5, atol=1e-5)
@@ -99,7 +99,7 @@ def test_bf16_close_to_fp32(net, tsukuba):
     (With the first layer under autocast too: 2.5% and 0.5%.)
     """
     c32, d32, _ = confidence(net, tsukuba.left, tsukuba.right, 16)
-    c16, d16, _ = confidence(net, tsukuba.left, tsukuba.right, 16, bf16=True)
+    c16, d16, _ = confidence(net, tsukuba.left, tsukuba.right, 16, 'bf16')
     assert c16.dtype == np.float32 and d16.dtype == np.int32
     assert np.abs(c16 - c32).mean() < 0.003 and (d16 != d32).mean() < 0.02
     assert (np.abs(d16 - d32) > 3).mean() < 0.004

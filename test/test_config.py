@@ -60,7 +60,7 @@ def test_a_flag_must_be_a_boolean(name):
 def test_a_choice_field_takes_only_its_choices(name):
     for choice in CHOICES[name]:
         assert getattr(StereoConfig(**{name: choice}), name) == choice
-    wrong = {'cost': 'ncc', 'paths': 16.0, 'downsample': 3, 'bf16': 1}[name]
+    wrong = {'cost': 'ncc', 'paths': 16.0, 'downsample': 3, 'precision': 'fp16'}[name]
     with pytest.raises(ValueError, match=f'^{name} must be one of '):
         StereoConfig(**{name: wrong})
 
@@ -111,7 +111,7 @@ def test_the_node_parameters_take_their_ranges_and_choices_from_the_config():
             low, high = RANGES[p.field]
             assert p.range == (low, high, 1 if isinstance(low, int) else 0.0), p.name
             assert type(p.default) is type(low), p.name  # the descriptor's kind is the field's
-        elif p.field in CHOICES and p.name != 'bf16':  # bf16: strings for ROS
+        elif p.field in CHOICES:
             assert p.choices == CHOICES[p.field], p.name
 
 

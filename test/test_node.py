@@ -11,7 +11,6 @@ from gcp_stereo_ros.ros import messages
 from gcp_stereo_ros.ros.rosimage import image_to_array
 import numpy as np
 import pytest
-from rclpy.parameter import Parameter
 from ros_helpers import expected, MAX_DISP, wait_for
 
 
@@ -111,24 +110,23 @@ def test_set_parameters_live(harness, pair):
         ({'census.window': 10}, 'window'),
         ({'census.window': 13}, 'census.window'),
         ({'image_transport': 'theora'}, 'image_transport'),
-        ({'bf16': 'maybe'}, "bf16 must be one of 'auto', 'true', 'false', got 'maybe'"),
-        ({'bf16': 1}, "expected 'Type.STRING' got 'Type.INTEGER'"),  # rclpy's own check
-        ({'bf16': 0.0}, "expected 'Type.STRING' got 'Type.DOUBLE'"),
+        ({'precision': 'fp16'},
+         "precision must be one of 'auto', 'int8', 'bf16', 'fp32', got 'fp16'"),
+        ({'precision': True}, "expected 'Type.STRING' got 'Type.BOOL'"),  # rclpy's own check
+        ({'precision': 8}, "expected 'Type.STRING' got 'Type.INTEGER'"),
         ({'downsample': 3}, 'downsample'),
         ({'device': 'cuda:7'}, "device 'cuda:7'"),
     ]:
         (result,) = harness.set_params(values)[:1]
         assert not result.successful and reason in result.reason, (values, result.reason)
     assert harness.node.get_parameter('census.theta').value == 0.6
-    for bf16, field in ((True, True), ('auto', 'auto'), ('true', True), (False, False)):
-        assert all(r.successful for r in harness.set_params({'bf16': bf16}))
-        assert harness.node.pipeline.config.bf16 == field
-        param = harness.node.get_parameter('bf16')  # one type, whatever was sent
-        assert (param.type_, param.value) == (Parameter.Type.STRING, str(bf16).lower())
+    for precision in ('bf16', 'auto', 'fp32'):
+        assert all(r.successful for r in harness.set_params({'precision': precision}))
+        assert harness.node.pipeline.config.precision == precision
     harness.send_pair(left, right, 'rgb8', 7_000_000_000)
     wait_for(lambda: harness.disparity, 'disparity after set')
     overrides = {**harness.overrides, 'census.theta': 0.6, 'census.P1': 6.0,
-                 'census.P2': 100.0, 'paths': 8, 'bf16': False, 'downsample': 2}
+                 'census.P2': 100.0, 'paths': 8, 'precision': 'fp32', 'downsample': 2}
     want, result = expected(overrides, left, right)
     np.testing.assert_array_equal(image_to_array(harness.disparity[-1].image), want)
     np.testing.assert_array_equal(image_to_array(harness.gcp[-1]),

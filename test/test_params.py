@@ -1,7 +1,7 @@
 """Parameter files as the node and `gcp-stereo-bag run --params` read them, ROS-free."""
 from pathlib import Path
 
-from gcp_stereo_ros.ros.params import coerce, config_from_params, load_params_file
+from gcp_stereo_ros.ros.params import config_from_params, load_params_file
 from gcp_stereo_ros.stereo.config import StereoConfig
 import pytest
 import yaml
@@ -76,8 +76,9 @@ def test_both_costs_are_checked_whichever_is_chosen():
 
 
 @pytest.mark.parametrize('values, reason', [
-    ({'bf16': 1}, '^bf16 takes a str value, got 1$'),  # 1 == True, still refused
-    ({'bf16': 'maybe'}, "^bf16 must be one of 'auto', 'true', 'false', got 'maybe'$"),
+    ({'precision': False}, '^precision takes a str value, got False$'),
+    ({'precision': 'fp16'}, "^precision must be one of 'auto', 'int8', 'bf16', 'fp32', "
+                            "got 'fp16'$"),
     ({'max_disparity': 0}, r'^max_disparity must be in \[1, 1024\], got 0$'),  # its ROS name
 ])
 def test_values_of_neither_cost_are_not_said_of_one(values, reason):
@@ -85,11 +86,10 @@ def test_values_of_neither_cost_are_not_said_of_one(values, reason):
         config_from_params(values)
 
 
-def test_bf16_is_a_string_that_takes_booleans(tmp_path):
-    """bf16 keeps one type: 'auto', 'true', 'false'; YAML booleans are taken as the strings."""
-    for value, field in (('auto', 'auto'), ('true', True), ('false', False), (True, True),
-                         (False, False)):
-        assert coerce('bf16', value) == str(value).lower()
-        assert config_from_params({'bf16': value}).bf16 == field
-    path = write(tmp_path, {'/**': {'ros__parameters': {'bf16': False}}})
-    assert load_params_file(path) == {'bf16': 'false'}
+def test_bf16_of_earlier_releases_says_what_it_became():
+    """A params file with the old bf16 parameter is refused, naming precision's values."""
+    with pytest.raises(ValueError, match=r"bf16 is now precision \('bf16' for bf16 true, "
+                                         r"'fp32' for false"):
+        config_from_params({'bf16': False})
+    for value in ('auto', 'int8', 'bf16', 'fp32'):
+        assert config_from_params({'precision': value}).precision == value

@@ -97,7 +97,7 @@ def test_plain_sgm_check_of_the_gcps_on_kitti_000035(data_dir):
     """
     from gcp_stereo_ros.stereo.config import UNFILTERED
     f = load_frame(data_dir, 'kitti2015/000035_10')
-    cfg = StereoConfig(max_disp=f.max_disp, subpixel=False, bf16=False, **UNFILTERED)
+    cfg = StereoConfig(max_disp=f.max_disp, subpixel=False, precision='fp32', **UNFILTERED)
     pipe = StereoPipeline(cfg)
     checked = pipe(f.left, f.right)
     cnn = checked.cnn
@@ -286,7 +286,7 @@ def test_memory_estimate_bounds_the_measured_peak(motorcycle, radius):
     """
     mmap_large_arrays()  # as the node and the bag tool do
     left, right, _ = motorcycle
-    pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=96, bf16=False,
+    pipe = StereoPipeline(StereoConfig.for_cost('census', max_disp=96, precision='fp32',
                                                 cnn_filter_radius=radius))
     pipe(left[:64, :128], right[:64, :128])  # first calls of everything
     pipe.release()

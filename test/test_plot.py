@@ -34,7 +34,7 @@ def test_a_sweep_takes_switches(tmp_path, data_dir):
     """--grid takes true/false: here gcp_plain_check, which leaves fewer, surer GCPs."""
     assert plot.main(['sweep', '--dataset', str(data_dir), '--frames', 'middlebury_v2/tsukuba',
                       '--method', 'census+gcp', '--grid', 'gcp_plain_check=true,false',
-                      '--set', 'bf16=false', '--out', str(tmp_path)]) == 0
+                      '--set', 'precision=fp32', '--out', str(tmp_path)]) == 0
     rows = json.loads((tmp_path / 'sweep_census_gcp.json').read_text())
     on, off = sorted(rows, key=lambda r: not r['gcp_plain_check'])
     # measured: 90.9 / 99.33 % and 92.7 / 98.75 % (density / accuracy), bad3 2.68 and 2.90 %

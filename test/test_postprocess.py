@@ -283,7 +283,7 @@ def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
 def test_the_gpu_twins_of_the_confidence_equal_the_host(data_dir):
     """disparity_confidence_cuda (torch, here on the CPU) against the host, on KITTI 000070."""
     frame = load_frame(data_dir, 'kitti2012/000070_10')
-    pipe = StereoPipeline(StereoConfig(bf16=False, **UNFILTERED))
+    pipe = StereoPipeline(StereoConfig(precision='fp32', **UNFILTERED))
     r = pipe(frame.left, frame.right)
     _, _, s_best, s_second = winners(pipe.backend.kept['total'], True, True)
     on = [torch.from_numpy(a) for a in (s_best, s_second)]

@@ -7,6 +7,8 @@ without them runs without it.
 """
 import numpy as np
 
+from ..stereo.weights import int8_entry
+
 
 def load_cnn(pipeline):
     """Return `pipeline` with its CNN loaded if it uses GCPs: weights that cannot work raise."""
@@ -16,11 +18,12 @@ def load_cnn(pipeline):
 
 
 def cnn_precision(config):
-    """Say how a StereoConfig runs the CNN: 'bfloat16', 'float32' or 'not used'."""
+    """Say how a StereoConfig runs the CNN: 'int8', 'bf16', 'fp32' or 'not used'."""
     if not config.use_gcp:
         return 'not used'
-    from ..stereo.cnn import resolve_bf16  # optional: torch
-    return 'bfloat16' if resolve_bf16(config.bf16, config.device) else 'float32'
+    from ..stereo.cnn import resolve_precision  # optional: torch
+    return resolve_precision(config.precision, config.device,
+                             int8_entry(config.weights) is not None)
 
 
 def config_warnings(pipeline):

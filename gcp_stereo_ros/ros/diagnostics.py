@@ -26,7 +26,7 @@ class Diagnostics:
     busy the node takes only the newest, and counts the others when it does), over the
     last NO_PAIR_SECONDS; pairs processed per second, latency from the
     images' stamp to publishing (mean and max over the last second), pairs dropped as stale,
-    images dropped unmatched, errors, device, CNN precision (what bf16 'auto' gave) and
+    images dropped unmatched, errors, device, CNN precision (what precision 'auto' gave) and
     weights. Level WARN while crossed parameter values wait (P1 > P2, c_low > c_hi), when
     images were taken for NO_PAIR_SECONDS and none of them paired (a frame that takes longer
     is no such case: the node takes no images meanwhile; the message says which topic

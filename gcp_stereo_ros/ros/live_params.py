@@ -48,12 +48,11 @@ class LiveParameters:
     not have, or that is invalid, or refused by `check`, is refused (ValueError). A request
     is validated whole, each value on its own, then by `check`, and refused with the reason
     if any value is invalid. A whole number set for a decimal parameter is taken as that
-    decimal, a boolean for bf16 as 'true' or 'false' (bf16 stays a string). No parameter
-    changes another. Values that cross within a cost (P1 > P2, c_low > c_hi), as when
-    `ros2 param load` sets P1 before P2, are accepted and wait (`check` sees them with the
-    high value raised to the low one): `pending` says why until a later value uncrosses
-    them. Once a request is taken, `on_change(names)` is called with the names whose values
-    changed (none where each was set to what it was).
+    decimal. No parameter changes another. Values that cross within a cost (P1 > P2,
+    c_low > c_hi), as when `ros2 param load` sets P1 before P2, are accepted and wait
+    (`check` sees them with the high value raised to the low one): `pending` says why until
+    a later value uncrosses them. Once a request is taken, `on_change(names)` is called with
+    the names whose values changed (none where each was set to what it was).
     """
 
     def __init__(self, node, check, on_change):
@@ -84,10 +83,10 @@ class LiveParameters:
 
     @staticmethod
     def _as_declared(params):
-        """Give a whole number for a decimal parameter, or a boolean for bf16, its type."""
+        """Give a whole number for a decimal parameter its type."""
         out = []
         for p in params:
-            if p.name in BY_NAME and p.type_ in (Parameter.Type.INTEGER, Parameter.Type.BOOL):
+            if p.name in BY_NAME and p.type_ == Parameter.Type.INTEGER:
                 try:
                     p = Parameter(p.name, value=coerce(p.name, p.value))
                 except ValueError:

@@ -41,11 +41,9 @@ class Param:
     range: tuple | None = None  # noqa: A003 (read elsewhere as p.range, so keep the name)
     choices: tuple | None = None  # the only values allowed (said in the descriptor)
     cost: str | None = None  # the matching cost this value belongs to (None = any)
-    # {ROS value: StereoConfig value} where they differ (None: the same)
-    to_field: dict | None = None
 
     def __post_init__(self):
-        """Take the field's range or choices from the config, unless given (bf16's)."""
+        """Take the field's range or choices from the config, unless given."""
         if self.field == 'window':
             object.__setattr__(self, 'range', (*WINDOWS[self.cost], 2))
         elif self.field in RANGES:
@@ -104,13 +102,10 @@ PARAMS = (
           "CNN weights file ('' = the weights shipped with the package)", 'weights'),
     Param('device', _D.device,
           "'cpu', or 'cuda' / 'cuda:N' to run the whole pipeline on that GPU", 'device'),
-    # A string, so that it keeps one type through `ros2 param set/dump/load`; true and false
-    # given as booleans (`-p bf16:=false`, `ros2 param set ... bf16 false`) become 'true',
-    # 'false'.
-    Param('bf16', 'auto', "bfloat16 CNN descriptors: 'auto' (on where native: CPUs with "
-          "avx512_bf16 or AMX, CUDA), 'true' or 'false' (a string parameter; booleans are "
-          'taken as these strings)', 'bf16', choices=('auto', 'true', 'false'),
-          to_field={'auto': 'auto', 'true': True, 'false': False}),
+    Param('precision', _D.precision,
+          "arithmetic of the CNN's convolutions: 'int8' (CPU only), 'bf16', 'fp32', or 'auto' "
+          '(int8 on CPUs with AVX512-VNNI, AVX-VNNI or AMX, else bf16 where native: '
+          'avx512_bf16, AMX, CUDA; else fp32)', 'precision'),
     Param('subpixel', _D.subpixel, 'parabola fit for sub-pixel disparities', 'subpixel'),
     Param('median', _D.median, '3x3 median filter on the disparity', 'median'),
     # Invalidation (stereo.postprocess): invalid pixels are published as min_disparity - 1,
@@ -177,6 +172,8 @@ ORDERED = (('P1', 'P2'), ('c_low', 'c_hi'))  # (low, high): low <= high within e
 SYNC_PARAMS = ('queue_size', 'approximate_sync', 'approximate_sync_tolerance_seconds',
                'memory_limit_mb')
 INPUT_PARAMS = ('image_transport', 'rectify')
+# Parameters of earlier releases: what each became.
+RENAMED = {'bf16': "precision ('bf16' for bf16 true, 'fp32' for false, 'auto' for auto)"}
 
 
 def check_names(names, where=''):
@@ -186,6 +183,7 @@ def check_names(names, where=''):
         per_cost = sorted({n for n in unknown if f'census.{n}' in BY_NAME})
         hint = (f' ({", ".join(per_cost)}: each cost has its own, e.g. census.{per_cost[0]}, '
                 f'sad.{per_cost[0]})' if per_cost else '')
+        hint += ''.join(f' ({n} is now {RENAMED[n]})' for n in unknown if n in RENAMED)
         raise ValueError(f'{where}unknown parameter(s) {unknown}{hint}{_guesses(unknown)}; '
                          f'known: {sorted(BY_NAME)}')
 
@@ -209,16 +207,13 @@ def coerce(name, value):
     """
     Return `value` as parameter `name` takes it: a whole number for a decimal one as float.
 
-    YAML `P1: 4`, `-p census.P1:=300` and `ros2 param set ... census.P1 300` give integers;
-    `bf16: false` gives a boolean, taken as the string 'false'.
+    YAML `P1: 4`, `-p census.P1:=300` and `ros2 param set ... census.P1 300` give integers.
     Raises ValueError for a value of the wrong type, not among the parameter's choices or
     outside its range (what the node's descriptor allows).
     """
     p = BY_NAME[name]
     if isinstance(p.default, float) and type(value) is int:
         value = float(value)
-    if p.to_field is not None and type(value) is bool:  # bf16 false -> 'false'
-        value = str(value).lower()
     if type(value) is not type(p.default):
         raise ValueError(f'{name} takes a {type(p.default).__name__} value, got {value!r}')
     if p.choices and value not in p.choices:
@@ -232,12 +227,6 @@ def coerce(name, value):
     return value
 
 
-def _field_value(name, value):
-    """Return the StereoConfig value of parameter `name`'s ROS value."""
-    to_field = BY_NAME[name].to_field
-    return value if to_field is None else to_field[value]
-
-
 def config_from_params(values):
     """
     Build the StereoConfig of the chosen `cost` from ROS-named parameter values.
@@ -246,7 +235,7 @@ def config_from_params(values):
     `cost` can never fail. Raises ValueError for unknown names or invalid values.
     """
     check_names(values)
-    values = {n: _field_value(n, coerce(n, v)) for n, v in values.items()}
+    values = {n: coerce(n, v) for n, v in values.items()}
     # The values of neither cost first, so that their errors are not said of a cost.
     StereoConfig(**{BY_NAME[n].field: v for n, v in values.items()
                     if BY_NAME[n].field and n != 'cost' and BY_NAME[n].cost is None})

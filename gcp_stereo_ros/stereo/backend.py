@@ -52,12 +52,12 @@ class CpuBackend(KeptBuffers):
         return cnn
 
     def cnn_confidence(self, net: Any, pair: tuple[np.ndarray, np.ndarray], max_disp: int,
-                       bf16: bool | str, radius: int, scratch: np.ndarray | None,
+                       precision: str, radius: int, scratch: np.ndarray | None,
                        seconds: dict[str, float] | None,
                        cancel: CancelFlag | None = None) -> CnnConfidence:
         """Return `cnn.confidence` (torch is imported with the CNN)."""
         from .cnn import confidence
-        return CnnConfidence(*confidence(net, *pair, max_disp, bf16, seconds=seconds,
+        return CnnConfidence(*confidence(net, *pair, max_disp, precision, seconds=seconds,
                                          cancel=cancel, radius=radius, scratch=scratch))
 
     def cost_volume(self, pair: tuple[np.ndarray, np.ndarray], max_disp: int, cost_name: str,
@@ -128,7 +128,7 @@ def backend(device: str) -> Backend:
 
 
 def cnn_confidence(net: Any, left: np.ndarray, right: np.ndarray, max_disp: int,
-                   device: str = 'cpu', bf16: bool | str = False,
+                   device: str = 'cpu', precision: str = 'fp32',
                    radius: int = 0) -> CnnConfidence:
     """
     Return the host `CnnConfidence` of a pair on `device`: the CNN alone, for the tools.
@@ -139,5 +139,5 @@ def cnn_confidence(net: Any, left: np.ndarray, right: np.ndarray, max_disp: int,
     b = backend(device)
     left, right = gray_pair(left, right)
     pair = b.upload(left, right, True)
-    cnn = b.cnn_confidence(net, pair, max_disp, bf16, radius, None, None)
+    cnn = b.cnn_confidence(net, pair, max_disp, precision, radius, None, None)
     return CnnConfidence(*b.to_host(*cnn))

@@ -70,11 +70,12 @@ class CudaBackend(KeptBuffers):
         return CnnConfidence(*(torch.from_numpy(np.ascontiguousarray(a, t)).to(self.torch_device)
                                for a, t in zip(cnn, CNN_TYPES)))
 
-    def cnn_confidence(self, net, pair, max_disp, bf16, radius, scratch, seconds, cancel=None):
+    def cnn_confidence(self, net, pair, max_disp, precision, radius, scratch, seconds,
+                       cancel=None):
         """Return `cnn_cuda.device_confidence` of the standardized pair."""
         with gpu.current(self.device):
             return CnnConfidence(*cnn_cuda.device_confidence(
-                net, padded_input(pair[1]), max_disp, bf16, seconds, radius))
+                net, padded_input(pair[1]), max_disp, precision, seconds, radius))
 
     def cost_volume(self, pair, max_disp, cost, window, scale, dtype, out, cancel=None):
         """Return `cost_cuda.cost_volume`: of the gray pair for Census, standardized for SAD."""

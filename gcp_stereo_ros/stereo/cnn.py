@@ -40,11 +40,11 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from . import cnn_filter
+from . import cnn_filter, cnn_int8
 from .cnn_correlation import best_match, EPS, volume as correlation_volume
 from .cost import check_max_disp
 from .images import gray_pair, standardize
-from .weights import cnn_calibrations, weights_path
+from .weights import cnn_calibrations, int8_entry, weights_path
 
 PATCH = 9
 FEATURES = 64
@@ -84,8 +84,9 @@ def load_net(path=None, device='cpu'):
     Return a GcpNet in eval mode with the weights at `path` (default: the shipped weights).
 
     The file holds {'state_dict': ..., 'meta': {...}, 'calibration': ...} (see
-    `gcp_stereo_ros.tools.train`); the calibrations of the guided-filtered confidence are
-    read from its side file (`weights.cnn_calibrations`). Raises FileNotFoundError if it
+    `gcp_stereo_ros.tools.train`); the calibrations of the guided-filtered confidence and
+    the int8 entry (`net.int8`, None without one) are read from its side file
+    (`weights.cnn_calibrations`, `weights.int8_entry`). Raises FileNotFoundError if it
     does not exist, ValueError if it cannot be read as such, holds NaN or infinite weights,
     or a calibration is invalid.
     """
@@ -105,6 +106,7 @@ def load_net(path=None, device='cpu'):
     net.meta = blob.get('meta', {})
     net.path = path
     net.calibrations = cnn_calibrations(blob.get('calibration'), path)
+    net.int8 = int8_entry(path)
     return net.to(device).eval()
 
 
@@ -148,7 +150,7 @@ def calibrated(net, cosine, radius=0):
 @functools.cache
 def bf16_native(device='cpu'):
     """
-    Tell whether bfloat16 convolutions run natively on `device` (what bf16 'auto' uses).
+    Tell whether bfloat16 convolutions run natively on `device` (for precision 'auto').
 
     True on CUDA devices of compute capability 8.0 or more (Ampere on; torch emulates
     bfloat16 on older ones) and on CPUs with avx512_bf16 or AMX (read from /proc/cpuinfo);
@@ -164,9 +166,19 @@ def bf16_native(device='cpu'):
     return 'avx512_bf16' in flags or 'amx_bf16' in flags
 
 
-def resolve_bf16(bf16, device='cpu'):
-    """Return whether the CNN runs in bfloat16 on `device` for `bf16`: True, False or 'auto'."""
-    return bf16_native(device) if bf16 == 'auto' else bool(bf16)
+def resolve_precision(precision, device='cpu', int8_fitted=False):
+    """
+    Return the CNN's arithmetic for a `StereoConfig.precision`: 'int8', 'bf16' or 'fp32'.
+
+    'auto' gives 'int8' on a CPU where `cnn_int8.int8_native` if the weights have an int8
+    entry (`int8_fitted`: `weights.int8_entry`), else 'bf16' where `bf16_native(device)`,
+    else 'fp32'; any other value is returned as it is.
+    """
+    if precision != 'auto':
+        return precision
+    if torch.device(device).type == 'cpu' and cnn_int8.int8_native() and int8_fitted:
+        return 'int8'
+    return 'bf16' if bf16_native(device) else 'fp32'
 
 
 def network_input(*grays):
@@ -184,17 +196,21 @@ def padded_input(x):
     return F.pad(x[:, None], (PAD,) * 4, mode='replicate')
 
 
-def descriptors(net, x, bf16=False, cancel=None):
+def descriptors(net, x, precision='fp32', cancel=None):
     """
     Return the raw branch output (N, H, W, 64) of a padded input, on the input's device.
 
     The net runs in channels_last (1.6x faster on CPU than the default layout, and the
     permute to (N, H, W, 64) is then free), each convolution with its ReLU (`_conv_relu`).
-    With `bf16` the first layer runs as `_first_layer_bf16` and the others in bfloat16 with
-    float32 accumulation. `cancel`: a CancelFlag, checked before each layer (raises
-    Cancelled).
+    `precision` (resolved, `resolve_precision`): 'fp32'; 'bf16', the first layer as
+    `_first_layer_bf16` and the others in bfloat16 with float32 accumulation; 'int8' (CPU),
+    the quantized branch (`cnn_int8.branch`), bfloat16 descriptors. `cancel`: a CancelFlag,
+    checked before each layer (raises Cancelled).
     """
+    if precision == 'int8':
+        return cnn_int8.branch(net)(x, cancel)
     net.to(memory_format=torch.channels_last)  # in place; a 1-channel input cannot select it
+    bf16 = precision == 'bf16'
     dtype = torch.bfloat16 if bf16 else torch.float32
     with torch.inference_mode():
         for i, conv in enumerate(net.branch[::2]):  # = net.branch(x), stoppable between layers
@@ -215,7 +231,7 @@ def _conv_relu(conv, x, weight, bias):
     a separate ReLU was a quarter of the CNN's time with two cores (a pass over each layer's
     output; doc/speed.md). oneDNN's bfloat16 path needs avx512bw/vl/dq or avx_ne_convert:
     on other CPUs (AVX2 only) bfloat16 takes torch's plain convolution, emulated and slow
-    (bf16 'auto' is off there).
+    (precision 'auto' does not pick it there).
     """
     if (x.device.type == 'cpu' and torch.backends.mkldnn.is_available()
             and (x.dtype != torch.bfloat16 or torch.ops.mkldnn._is_mkldnn_bf16_supported())):
@@ -250,17 +266,17 @@ def _first_layer_bf16(conv, x):
     return _conv_relu(conv, parts, weight, conv.bias.bfloat16())
 
 
-def confidence(net, left, right, max_disp, bf16=False, volume=False, seconds=None, cancel=None,
-               radius=0, scratch=None):
+def confidence(net, left, right, max_disp, precision='fp32', volume=False, seconds=None,
+               cancel=None, radius=0, scratch=None):
     """
     Return the CNN confidence of a rectified pair for disparities 0..max_disp-1, on the CPU.
 
     `left`/`right`: anything `images.gray_pair` accepts; each is standardized on its own.
     The convolutions run with torch (a CPU net), both images as one batch (see
-    `descriptors`); `bf16`: True, False or 'auto' (`resolve_bf16`). The L2 normalization
-    (float32) and the correlation run in a numba kernel, strip by strip, streaming over d
-    without materializing the volume. With `radius` > 0 the volume of each strip is
-    materialized and guided-filtered first (`cnn_filter.StripFilter`, in `scratch` if
+    `descriptors`); `precision`: a `StereoConfig.precision` (`resolve_precision`). The L2
+    normalization (float32) and the correlation run in a numba kernel, strip by strip,
+    streaming over d without materializing the volume. With `radius` > 0 the volume of each
+    strip is materialized and guided-filtered first (`cnn_filter.StripFilter`, in `scratch` if
     given). `seconds`: a dict that gains the wall time of the convolutions ('cnn') and of
     the correlation ('confidence'). `cancel`: a CancelFlag, checked before each layer of
     each strip (raises Cancelled). `cnn_cuda.device_confidence` is the GPU twin.
@@ -277,7 +293,7 @@ def confidence(net, left, right, max_disp, bf16=False, volume=False, seconds=Non
     h, w = lg.shape
     check_max_disp(max_disp, w)
     max_disp = int(max_disp)
-    bf16 = resolve_bf16(bf16)
+    precision = resolve_precision(precision, 'cpu', getattr(net, 'int8', None) is not None)
     x = network_input(lg, rg)
     cof_c = np.empty((h, w), np.float32)
     cof_d = np.empty((h, w), np.int32)
@@ -292,7 +308,7 @@ def confidence(net, left, right, max_disp, bf16=False, volume=False, seconds=Non
     for y0 in range(0, h, STRIP_ROWS):
         y1 = min(y0 + STRIP_ROWS, h)
         t = time.perf_counter()
-        f = descriptors(net, x[:, :, y0:y1 + 2 * PAD], bf16, cancel).cpu().contiguous()
+        f = descriptors(net, x[:, :, y0:y1 + 2 * PAD], precision, cancel).cpu().contiguous()
         if f.dtype == torch.bfloat16:  # the numba kernels widen and normalize it
             bits, shift = f.view(torch.int16).numpy().view(np.uint16), 16
         else:

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from . import cnn_filter
-from .cnn import calibrated, descriptors, EPS, PAD, resolve_bf16, STRIP_ROWS
+from .cnn import calibrated, descriptors, EPS, PAD, resolve_precision, STRIP_ROWS
 from .cost import check_max_disp
 
 BAND_BLOCK = 128  # columns per block of `_band_volume`
@@ -57,7 +57,7 @@ def ieee_float32():
     cuDNN takes TF32 (a 10-bit mantissa) for float32 convolutions by default on GPUs of
     compute capability 8.0 or more, and torch's matrix products do where a program asked
     for it (`torch.set_float32_matmul_precision`), which moves the confidence of
-    `bf16: false` away from the CPU's (doc/notes/speed_report.md). bfloat16 work is not
+    `precision: fp32` away from the CPU's (doc/notes/speed_report.md). bfloat16 work is not
     affected.
     """
     backends = (torch.backends.cudnn.conv, torch.backends.cuda.matmul)
@@ -71,18 +71,19 @@ def ieee_float32():
             b.fp32_precision = precision
 
 
-def device_confidence(net, x, max_disp, bf16=False, seconds=None, radius=0):
+def device_confidence(net, x, max_disp, precision='fp32', seconds=None, radius=0):
     """
     Return `cnn.confidence`'s (cof_c, cof_d, cof_dr) as tensors on the device of `x`.
 
-    `x`: the pair as `cnn.padded_input` makes it, on the net's device; `radius`: of the
-    guided filter (0: none). `seconds`: a dict that gains the device time of the
+    `x`: the pair as `cnn.padded_input` makes it, on the net's device; `precision`: 'auto',
+    'bf16' or 'fp32' (`cnn.resolve_precision`); `radius`: of the guided filter (0: none).
+    `seconds`: a dict that gains the device time of the
     convolutions ('cnn') and of the correlation ('confidence'), waiting for the device at
     each strip's stages; None: not timed, nothing waits.
     """
     h, w = x.shape[2] - 2 * PAD, x.shape[3] - 2 * PAD
     check_max_disp(max_disp, w)
-    bf16 = resolve_bf16(bf16, x.device)
+    precision = resolve_precision(precision, x.device)
     cof_c = torch.empty((h, w), dtype=torch.float32, device=x.device)
     cof_d = torch.empty((h, w), dtype=torch.int32, device=x.device)
     cof_dr = torch.empty((h, w), dtype=torch.int32, device=x.device)
@@ -95,7 +96,7 @@ def device_confidence(net, x, max_disp, bf16=False, seconds=None, radius=0):
             y1 = min(y0 + STRIP_ROWS, h)
             lo, hi = max(0, y0 - cnn_filter.halo(radius)), min(h, y1 + cnn_filter.halo(radius))
             t = time.perf_counter()
-            f = F.normalize(descriptors(net, x[:, :, lo:hi + 2 * PAD], bf16).float(), dim=3,
+            f = F.normalize(descriptors(net, x[:, :, lo:hi + 2 * PAD], precision).float(), dim=3,
                             eps=EPS)
             if timed:
                 _synchronize(x.device)

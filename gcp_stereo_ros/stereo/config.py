@@ -42,7 +42,7 @@ PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False, 'cnn_filter_radius': 
          for cost, values in PAPER.items()}
 PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
 DOWNSAMPLE = (1, 2, 4)
-BF16 = (True, False, 'auto')
+PRECISIONS = ('auto', 'int8', 'bf16', 'fp32')
 MAX_COST_PARAM = 10000.0  # P1, P2, c_hi, c_low: far above any useful value of either cost
 # The valid values of each number field, both ends included: the one source of truth,
 # which the node's parameter descriptors are made from (ros/params.py). The window's
@@ -67,10 +67,11 @@ RANGES: dict[str, tuple[int, int] | tuple[float, float]] = {
 }
 # The only values of these fields.
 CHOICES: dict[str, tuple[Any, ...]] = {'cost': cost_mod.COSTS, 'paths': PATHS,
-                                       'downsample': DOWNSAMPLE, 'bf16': BF16}
+                                       'downsample': DOWNSAMPLE,
+                                       'precision': PRECISIONS}
 # The fields the CNN's outputs (StereoResult cof_c, cof_d, cof_dr) depend on: a run may reuse
 # another's outputs (`StereoPipeline.__call__`'s `cnn`) only where these are the same.
-CNN_FIELDS = ('weights', 'device', 'bf16', 'max_disp', 'downsample', 'cnn_filter_radius')
+CNN_FIELDS = ('weights', 'device', 'precision', 'max_disp', 'downsample', 'cnn_filter_radius')
 FLAGS = ('use_gcp', 'gcp_lr_check', 'gcp_plain_check', 'subpixel', 'median', 'valid_window',
          'lr_check')
 DEVICE = re.compile(r'cpu|cuda(:\d+)?')
@@ -136,8 +137,9 @@ class StereoConfig:
         CNN weights file, ``''`` for the weights shipped with the package; default ''.
     device : str
         ``'cpu'``, or ``'cuda'`` / ``'cuda:N'``: the whole pipeline on that GPU; default 'cpu'.
-    bf16 : bool or str
-        bfloat16 CNN descriptors: True, False or ``'auto'`` (where native); default 'auto'.
+    precision : str
+        Arithmetic of the CNN's convolutions: ``'int8'`` (CPU only), ``'bf16'``, ``'fp32'``,
+        or ``'auto'``: the fastest native one (`cnn.resolve_precision`); default 'auto'.
     subpixel : bool
         Parabola fit of the summed costs for sub-pixel disparities; default True.
     median : bool
@@ -192,7 +194,7 @@ class StereoConfig:
     cnn_filter_radius: int = 4
     weights: str = ''
     device: str = 'cpu'
-    bf16: bool | str = 'auto'
+    precision: str = 'auto'
     subpixel: bool = True
     median: bool = False
     # Invalidation (stereo.postprocess), chosen on the validation frames (doc/published.md;
@@ -268,6 +270,9 @@ class StereoConfig:
                          f'got {self.weights!r}')
         if not (isinstance(self.device, str) and DEVICE.fullmatch(self.device)):
             found.append(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
+        elif self.precision == 'int8' and self.device != 'cpu':
+            found.append(f"precision 'int8' runs on the CPU only, not on {self.device}: use "
+                         "'auto', 'bf16' or 'fp32' there")
         bad = {text.split(' ', 1)[0] for text in found}
         if not {'p1', 'p2'} & bad and self.p2 < self.p1:
             found.append(f'P2 ({self.p2}) must be >= P1 ({self.p1}): a disparity jump may not '

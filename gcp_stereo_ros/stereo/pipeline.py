@@ -133,12 +133,16 @@ class StereoPipeline:
         """
         Return the CNN, loaded on first use, on the config's device.
 
-        ValueError if its weights have no calibration for the config's matched_radius.
+        ValueError if its weights have no calibration for the config's matched_radius, or
+        precision 'int8' cannot run (`cnn_int8.branch`).
         """
         from .cnn import calibration, load_net  # torch is imported only when GCPs are used
+        from .cnn_int8 import branch
         if self._net is None:
             self._net = load_net(self.config.weights or None, self.backend.torch_device)
         calibration(self._net, self.config.matched_radius)
+        if self.config.precision == 'int8':
+            branch(self._net)
         return self._net
 
     def __call__(self, left: np.ndarray, right: np.ndarray, cnn: CnnConfidence | None = None,
@@ -225,7 +229,7 @@ class StereoPipeline:
                                            else None)
         lap(None if b.host else 'upload')
         if fresh:
-            on_device = b.cnn_confidence(self.net, pair, nd, cfg.bf16, radius, kept.scratch,
+            on_device = b.cnn_confidence(self.net, pair, nd, cfg.precision, radius, kept.scratch,
                                          seconds if timed or b.host else None, cancel)
             lap(None)  # the CNN timed its own stages
         volume = b.cost_volume(pair, nd, cfg.cost, cfg.window, scale or 1, dtype, kept.cost,

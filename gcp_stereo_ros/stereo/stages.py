@@ -98,7 +98,7 @@ class Backend(Protocol):
     def to_device(self, cnn: CnnConfidence) -> CnnConfidence:
         """Return host CNN outputs on the device."""
 
-    def cnn_confidence(self, net: Any, pair: Any, max_disp: int, bf16: bool | str, radius: int,
+    def cnn_confidence(self, net: Any, pair: Any, max_disp: int, precision: str, radius: int,
                        scratch: Array | None, seconds: dict[str, float] | None,
                        cancel: CancelFlag | None = None) -> CnnConfidence:
         """

@@ -4,8 +4,9 @@ The CNN weights and their side file: where they are and what they carry besides 
 A weights file `<name>.pt` (written by `tools.train`) holds the net's state and the
 calibration of its unfiltered confidence. Beside it, `<name>.confidence.json` (the side
 file, written by `tools.fit_confidence`) holds, under `calibration_key(r)`, the calibration
-of the confidence guided-filtered with radius r, and under `method_key(cfg)`, the fit of the
-disparity confidence of each method. Both kinds of entry are read here, and only here.
+of the confidence guided-filtered with radius r, under `method_key(cfg)`, the fit of the
+disparity confidence of each method, and under INT8_KEY the int8 CNN's activation ranges
+(`cnn_int8`). Every kind of entry is read here, and only here.
 """
 import json
 from pathlib import Path
@@ -17,6 +18,7 @@ from .disparity_confidence import CONFIDENCE_FEATURES, ConfidenceFit
 
 DEFAULT_WEIGHTS = Path(__file__).parents[1] / 'weights' / 'gcp_cnn.pt'
 CALIBRATION_KEY = 'cnn_filter_radius='  # + the radius: a calibration's key in the side file
+INT8_KEY = 'int8'  # the int8 CNN's activation ranges and steps in the side file
 
 Knots = tuple[np.ndarray, np.ndarray]
 
@@ -80,6 +82,11 @@ def cnn_calibrations(own: dict | None, weights: Path) -> dict[int, Knots | None]
         if key.startswith(CALIBRATION_KEY) and radius.isdigit() and int(radius) > 0:
             calibrations[int(radius)] = parse_calibration(entry or {}, side_file(weights))
     return calibrations
+
+
+def int8_entry(weights: str | Path | None) -> dict | None:
+    """Return the int8 entry beside `weights` ({'ranges', 'clips', 'frames'}), None if none."""
+    return read_side_file(weights).get(INT8_KEY)
 
 
 def method_key(cfg: StereoConfig) -> str:

@@ -7,8 +7,9 @@ median is reported, with its ratio to OpenCV's time on the same images. Machines
 read the ratios, not the absolute seconds. The process allocates as the node and the bag
 tool do (`mmap_large_arrays`); the first line names the CPU.
 
-`--device cpu` (the default): the default pipeline (bf16 'auto') end to end as is and in
-fp32, with `downsample` 2 (as is and in fp32) and 4, and the cost and SGM stages alone.
+`--device cpu` (the default): the default pipeline (precision 'auto') end to end as is, in
+bf16 and in fp32, with `downsample` 2 (as is and in fp32) and 4, and the cost and SGM stages
+alone.
 `--device cuda`: the default pipeline on the GPU (transfers included) as is, in fp32 and with
 `downsample` 2, its stages as `cuda_<stage>` (each stage waits for the GPU to be timed, the
 pair's own time does not); the JSON names the GPU. Without a usable GPU it says why and
@@ -31,13 +32,14 @@ from .cli import console_main, positive_int
 from .evaluate import opencv_sgbm
 from ..evaluation.datasets import list_frames, load_frame
 from ..stereo import gpu
-from ..stereo.cnn import bf16_native
+from ..stereo.cnn import resolve_precision
 from ..stereo.config import StereoConfig
 from ..stereo.cost import cost_volume
 from ..stereo.images import gray_pair
 from ..stereo.memory import mmap_large_arrays
 from ..stereo.pipeline import StereoPipeline
 from ..stereo.sgm import aggregate
+from ..stereo.weights import int8_entry
 
 KITTI_SIZE = (1242, 375)
 
@@ -51,7 +53,8 @@ def cpu_name():
     name = next((line.split(':', 1)[1].strip() for line in info.splitlines()
                  if line.startswith('model name')), 'unknown CPU')
     flags = set(info.split())
-    extensions = [f for f in ('avx2', 'avx512f', 'avx512_bf16', 'amx_bf16') if f in flags]
+    extensions = [f for f in ('avx2', 'avx512f', 'avx512_vnni', 'avx512_bf16', 'amx_bf16')
+                  if f in flags]
     return f'{name} ({", ".join(extensions) or "no AVX2"}), {os.cpu_count()} cores'
 
 
@@ -144,25 +147,27 @@ def main(argv: list[str] | None = None) -> int:
         seconds = {'opencv_sgbm_hh': median_seconds(lambda: opencv_sgbm(left, right, nd),
                                                     args.repeat)}
         variants = {'cuda_pipeline': {'device': 'cuda'},
-                    'cuda_pipeline_fp32': {'device': 'cuda', 'bf16': False},
+                    'cuda_pipeline_fp32': {'device': 'cuda', 'precision': 'fp32'},
                     'cuda_pipeline_downsample2': {'device': 'cuda', 'downsample': 2}}
         device = gpu_name()
     else:
         seconds = volume_stage_seconds(left, right, nd, args.repeat)
-        variants = {'pipeline': {}, 'pipeline_fp32': {'bf16': False},
+        variants = {'pipeline': {}, 'pipeline_bf16': {'precision': 'bf16'},
+                    'pipeline_fp32': {'precision': 'fp32'},
                     'pipeline_downsample2': {'downsample': 2},
-                    'pipeline_downsample2_fp32': {'downsample': 2, 'bf16': False},
+                    'pipeline_downsample2_fp32': {'downsample': 2, 'precision': 'fp32'},
                     'pipeline_downsample4': {'downsample': 4}}
         device = cpu_name()
     pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
-    print(f"pipeline: the defaults; bf16 'auto' is {bf16_native()} on the CPU here")
+    print(f"pipeline: the defaults; precision 'auto' is "
+          f"{resolve_precision('auto', args.device, int8_entry('') is not None)} here")
     breakdown = {}
     for name, changes in variants.items():
         pipe = pipeline.with_config(pipeline.config.replace(**changes))
         seconds[name], breakdown[name] = median_pipeline(pipe, left, right, args.repeat)
         if name == 'cuda_pipeline':  # every CUDA stage: upload, cnn, ..., download
             seconds.update({f'cuda_{k}': v for k, v in breakdown[name].items()})
-        elif name in ('pipeline', 'pipeline_fp32'):
+        elif name in ('pipeline', 'pipeline_bf16', 'pipeline_fp32'):
             for stage in ('cnn', 'confidence', 'plain_sgm', 'refine'):
                 seconds[stage + name[len('pipeline'):]] = breakdown[name][stage]
     peer = seconds['opencv_sgbm_hh']

@@ -29,6 +29,7 @@ from ..stereo.backend import cnn_confidence
 from ..stereo.config import PRESETS, StereoConfig
 from ..stereo.images import gray_pair
 from ..stereo.pipeline import StereoPipeline
+from ..stereo.weights import int8_entry
 
 METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
 # Fields that options set: --set (and gcp-stereo-plot's --grid) may not.
@@ -103,7 +104,7 @@ class Runner:
         if method == 'cnn':  # winner-takes-all of the CNN confidence volume alone
             pipe = self.pipeline(cnn_method(method), max_disp)
             cfg = pipe.config
-            cof_d = cnn_confidence(pipe.net, left, right, max_disp, cfg.device, cfg.bf16,
+            cof_d = cnn_confidence(pipe.net, left, right, max_disp, cfg.device, cfg.precision,
                                    cfg.cnn_filter_radius).cof_d
             return cof_d.astype(np.float32), None, time.perf_counter() - t
         result = self.pipeline(method, max_disp)(left, right)
@@ -168,7 +169,8 @@ def add_options(ap, dataset_required=True):
                     help='parameter values before --set: the cross-validated defaults or '
                          "the paper's (Table 1's paper rows)")
     ap.add_argument('--set', action='append', metavar='KEY=VALUE',
-                    help='override a pipeline parameter (e.g. theta=0.7, bf16=false); repeatable')
+                    help='override a pipeline parameter (e.g. theta=0.7, precision=fp32); '
+                    'repeatable')
     ap.add_argument('--json', type=Path, help='write one row per (method, frame) to this file')
 
 
@@ -208,10 +210,11 @@ def evaluate_frame(runner, args, source, name):
         disp, _, seconds = runner.run(method, frame.left, frame.right, max_disp)
         rows.append({'method': method, 'frame': name, **error_rates(disp, frame.gt, frame.valid),
                      'seconds': seconds})
-        if (cnn := cnn_method(method)) is not None:  # what bf16 'auto' gave, per row
-            from ..stereo.cnn import resolve_bf16
+        if (cnn := cnn_method(method)) is not None:  # what precision 'auto' gave, per row
+            from ..stereo.cnn import resolve_precision
             cfg = runner.config(cnn, max_disp)
-            rows[-1]['bf16'] = resolve_bf16(cfg.bf16, cfg.device)
+            rows[-1]['precision'] = resolve_precision(cfg.precision, cfg.device,
+                                                      int8_entry(cfg.weights) is not None)
         if args.out:
             save_png(args.out / f'{name.replace("/", "_")}_{method}.png',
                      disparity_picture(disp, max_disp))
@@ -223,9 +226,9 @@ def print_results(rows, methods, notes):
     print(table(rows, methods))
     for key in ('density', 'bad3_published', 'near3_published'):
         print(table(rows, methods, key))
-    precisions = sorted({r['bf16'] for r in rows if 'bf16' in r})
+    precisions = sorted({r['precision'] for r in rows if 'precision' in r})
     if precisions:
-        print('CNN descriptors:', ' and '.join('bfloat16' if p else 'float32' for p in precisions))
+        print('CNN precision:', ' and '.join(precisions))
     for name, note in notes.items():
         if note:
             print(f'note: {name}: {note}')

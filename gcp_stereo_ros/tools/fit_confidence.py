@@ -17,10 +17,15 @@ WTA disparity before any test), so the fit holds whatever other test is on. Writ
 entry per method, downsample factor and radius (weights.method_key) into the side file of
 the weights (weights.side_file), keeping the other entries.
 
+With `--int8` it fits only the activation ranges of the int8 CNN (stereo.cnn_int8) on the
+split's training frames, and writes them under weights.INT8_KEY.
+
 The shipped fits (the manual, doc/published.md):
     python -m gcp_stereo_ros.tools.fit_confidence --dataset ../shared/data \
         --split config/cnn_split.yaml --methods census+gcp --downsample 1 2 4 \
         --cnn-filter-radius 0 1 2 3 4 5 6 7 8
+    python -m gcp_stereo_ros.tools.fit_confidence --dataset ../shared/data \
+        --split config/cnn_split.yaml --int8
 """
 import argparse
 import json
@@ -36,9 +41,9 @@ from ..evaluation.datasets import load_frame
 from ..stereo.config import DOWNSAMPLE, RANGES, StereoConfig, UNFILTERED
 from ..stereo.disparity_confidence import (CONFIDENCE_FEATURES, CONFIDENCE_PX, ConfidenceFit,
                                            features)
-from ..stereo.images import subsample, upsample
+from ..stereo.images import gray_pair, subsample, upsample
 from ..stereo.postprocess import cut_short
-from ..stereo.weights import calibration_key, method_key, side_file
+from ..stereo.weights import calibration_key, INT8_KEY, method_key, side_file
 
 RIDGE = 1e-6  # keeps the logistic fit defined when a feature is constant on the samples
 ITERATIONS = 25
@@ -94,12 +99,25 @@ def samples(result, config, gt, valid):
     return feats, np.abs(result.disparity[sel] - gt[sel]) <= CONFIDENCE_PX
 
 
-def split_frames(path):
-    """Return the validation frame names of a split file (config/cnn_split.yaml)."""
+def split_frames(path, part='validation'):
+    """Return the frame names of `part` ('validation' or 'train') of a split file."""
     doc = yaml.safe_load(open(path))
-    if not isinstance(doc, dict) or not doc.get('validation'):
-        raise ValueError(f'{path}: no validation frames')
-    return list(doc['validation'])
+    if not isinstance(doc, dict) or not doc.get(part):
+        raise ValueError(f'{path}: no {part} frames')
+    return list(doc[part])
+
+
+def fit_int8(args, path, fits):
+    """Fit the int8 CNN's activation ranges on the split's training frames into `fits`."""
+    from ..stereo.cnn import load_net, network_input  # torch is loaded with them
+    from ..stereo.cnn_int8 import fit as fit_ranges
+    frames = [load_frame(source, name) for source, name in select_frames(
+        args.dataset, split_frames(args.split, 'train'))]
+    inputs = (network_input(*gray_pair(f.left, f.right)) for f in frames)
+    fits[INT8_KEY] = fit_ranges(load_net(args.weights or None), inputs, [f.name for f in frames])
+    path.write_text(json.dumps(fits, indent=1) + '\n')
+    print(f'{INT8_KEY}: {len(frames)} training frames, clips {fits[INT8_KEY]["clips"]}; '
+          f'wrote {path}')
 
 
 @console_main('fit_confidence')
@@ -121,12 +139,20 @@ def main(argv: list[str] | None = None) -> None:
                     choices=range(low, high + 1),
                     help=f'fit for each of these radii of the CNN filter ({low} to {high}; '
                     'each r > 0 also gets its CNN calibration, fitted first)')
+    ap.add_argument('--int8', action='store_true',
+                    help="fit only the int8 CNN's activation ranges, on the split's training "
+                    'frames (needs --split)')
     args = ap.parse_args(argv)
+    if args.int8 and not args.split:
+        ap.error('--int8 fits on the training frames of a --split')
 
-    frames = [load_frame(source, name) for source, name in select_frames(
-        args.dataset, split_frames(args.split) if args.split else args.frames)]
     path = side_file(args.weights)
     fits = json.loads(path.read_text()) if path.is_file() else {}
+    if args.int8:
+        fit_int8(args, path, fits)
+        return
+    frames = [load_frame(source, name) for source, name in select_frames(
+        args.dataset, split_frames(args.split) if args.split else args.frames)]
     # the radii filtered with: each r, and r / f on the matching grid of each factor f
     matched = sorted({StereoConfig(cnn_filter_radius=radius, downsample=factor).matched_radius
                       for radius in args.cnn_filter_radius for factor in [1, *args.downsample]
