@@ -9,7 +9,8 @@ from gcp_stereo_ros.ros.camera import Rectifier, StereoModel
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import (array_to_compressed_fields, array_to_image_fields,
                                          image_to_array)
-from gcp_stereo_ros.stereo.cnn import resolve_precision
+from gcp_stereo_ros.stereo.cnn import bf16_native
+from gcp_stereo_ros.stereo.cnn_int8 import int8_native
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest
@@ -172,7 +173,8 @@ def test_diagnostics_say_what_is_wrong(harness, pair):
             'device', 'weights'} <= set(values)
     assert (values['device'], values['left topic']) == ('cpu', '/left/image_rect')
     assert values['CNN descriptors'] == 'not used'  # the harness runs without GCPs
-    for changes, precision in (({'use_gcp': True}, resolve_precision('auto')),
+    auto = 'int8' if int8_native() else 'bf16' if bf16_native() else 'fp32'
+    for changes, precision in (({'use_gcp': True}, auto),
                                ({'precision': 'fp32'}, 'fp32'), ({'precision': 'int8'}, 'int8'),
                                ({'use_gcp': False, 'precision': 'auto'}, 'not used')):
         assert all(r.successful for r in harness.set_params(changes))
