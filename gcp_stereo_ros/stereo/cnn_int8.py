@@ -2,9 +2,8 @@
 int8 CNN descriptors on the CPU: post-training quantization of the branch (`cnn.GcpNet`).
 
 The first layer (1 to 64 maps, 1.6 % of the branch's work) runs in a numba kernel that sums
-in float32 and writes its ReLU output rounded to uint8 steps (`_first_layer`; a float32
-convolution and a conversion took 3x the bf16 layer, this 0.2x). Layers 2-4 run as
-oneDNN int8 convolutions (`torch.ops.onednn.qconv2d_pointwise`: uint8 activations, int8
+in float32 and writes its ReLU output rounded to uint8 steps (`_first_layer`). Layers 2-4
+run as oneDNN int8 convolutions (`torch.ops.onednn.qconv2d_pointwise`: uint8 activations, int8
 weights with one scale per output map, int32 sums, bias and ReLU applied as the output is
 written; twice the bfloat16 rate on CPUs with AVX512-VNNI or AMX). Layers 2 and 3 write
 uint8, the last writes bfloat16 descriptors, which the correlation reads as bf16 ones.
@@ -16,8 +15,8 @@ layer's weights of that input map multiplied by it, the same function since ReLU
 with positive scales); each layer's uint8 step is then the 99.95th percentile of the
 scaled activations / 255 (larger values clip). The ranges and clips are fitted by
 `fit` on training frames and stored in the side file beside the weights (under
-`weights.INT8_KEY`; `tools/fit_confidence.py --int8`). Descriptors differ from float32 by a mean
-1 - cosine of 1e-3 to 2e-3 (bfloat16: 4e-5).
+`weights.INT8_KEY`; `tools/fit_confidence.py --int8`). What it costs in accuracy and gains in
+speed: doc/method.md, "int8".
 """
 import functools
 from pathlib import Path
