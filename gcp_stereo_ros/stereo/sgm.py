@@ -349,26 +349,24 @@ def parabola_offset(lo, mid, hi):
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=True)
-def _wta(total, subpixel, lr_tol, out, consistent, s_best, s_second, cancel):
+def _wta(total, subpixel, lr_tol, shift, out, consistent, s_best, s_second, cancel):
     h, w, nd = total.shape
+    low = np.int64((1 << shift) - 1)
     for y in prange(h):
         if cancel[0]:
             continue
         # Right view (lr_tol >= 0): the first argmin_d S(y, xr + d, d) of each right pixel xr,
-        # as running minima over the left pixels x = xr + d (d grows with x), kept at
-        # w - 1 - xr: for one x the right pixels x - d, d = 0, 1, ..., are then a forward
-        # run, which vectorizes.
-        right_min = np.empty(w if lr_tol >= 0 else 0, total.dtype)
-        right_arg = np.zeros(w if lr_tol >= 0 else 0, np.int32)
+        # as running minima over the left pixels x = xr + d (d grows with x) of the packed
+        # key(S) << shift | d, whose least is the least S at its first d; kept at w - 1 - xr:
+        # for one x the right pixels x - d, d = 0, 1, ..., are then a forward run of one min,
+        # which vectorizes.
+        right = np.empty(w if lr_tol >= 0 else 0, np.int64)
         for x in range(w if lr_tol >= 0 else 0):
-            j = w - 1 - x  # d = 0: the first cell of right pixel x
-            right_min[j] = total[y, x, 0]
-            right_arg[j] = 0
+            j = np.uint64(w - 1 - x)  # unsigned: no wraparound test, so the run vectorizes
+            right[j] = np.int64(_key(total[y, x, 0])) << shift  # d = 0: right pixel x's first
             for d in range(1, min(nd, x + 1)):
-                v = total[y, x, d]
-                better = v < right_min[j + d]
-                right_arg[j + d] = np.int32(d) if better else right_arg[j + d]
-                right_min[j + d] = v if better else right_min[j + d]
+                right[j + np.uint64(d)] = min(right[j + np.uint64(d)],
+                                              (np.int64(_key(total[y, x, d])) << shift) | d)
         for x in range(w):
             m = _key(total[y, x, 0])  # S >= 0: the first d whose key equals the minimum's
             for d in range(1, nd):
@@ -390,7 +388,7 @@ def _wta(total, subpixel, lr_tol, out, consistent, s_best, s_second, cancel):
                                          total[y, x, best + 1])
             if lr_tol >= 0:  # the right view's winner at xr = x - best, if inside the image
                 xr = x - best
-                consistent[y, x] = xr >= 0 and abs(right_arg[w - 1 - xr] - best) <= lr_tol
+                consistent[y, x] = xr >= 0 and abs((right[w - 1 - xr] & low) - best) <= lr_tol
             out[y, x] = best + offset
 
 
@@ -413,8 +411,8 @@ def winners(total, subpixel=False, lr_check=False, cancel=None):
         raise ValueError(f'summed path costs have {bad} cells that are negative, NaN or infinite')
     out, s_best, s_second = (np.empty(total.shape[:2], np.float32) for _ in range(3))
     consistent = np.ones(total.shape[:2], np.bool_)
-    _wta(total, subpixel, 1 if lr_check else -1, out, consistent, s_best, s_second,
-         flag_array(cancel))
+    _wta(total, subpixel, 1 if lr_check else -1, max(1, (total.shape[2] - 1).bit_length()),
+         out, consistent, s_best, s_second, flag_array(cancel))
     return out, consistent, s_best, s_second
 
 
