@@ -32,7 +32,6 @@ give the raw cosine. The guided-filtered confidence (`cnn_filter`) has calibrati
 own, one per radius, in the fits file beside the weights (`tools/fit_confidence.py`).
 """
 import functools
-from pathlib import Path
 import time
 
 import numpy as np
@@ -153,17 +152,13 @@ def bf16_native(device='cpu'):
     Tell whether bfloat16 convolutions run natively on `device` (for precision 'auto').
 
     True on CUDA devices of compute capability 8.0 or more (Ampere on; torch emulates
-    bfloat16 on older ones) and on CPUs with avx512_bf16 or AMX (read from /proc/cpuinfo);
+    bfloat16 on older ones) and on CPUs with avx512_bf16 or AMX (`cnn_int8.cpu_flags`);
     elsewhere bfloat16 runs emulated, slower than float32.
     """
     device = torch.device(device)
     if device.type == 'cuda':
         return torch.cuda.is_available() and torch.cuda.get_device_capability(device)[0] >= 8
-    try:
-        flags = Path('/proc/cpuinfo').read_text().split()
-    except OSError:
-        return False
-    return 'avx512_bf16' in flags or 'amx_bf16' in flags
+    return bool(cnn_int8.cpu_flags() & {'avx512_bf16', 'amx_bf16'})
 
 
 def resolve_precision(precision, device='cpu', int8_fitted=False):

@@ -41,20 +41,22 @@ def int8_available():
 
 
 @functools.cache
+def cpu_flags():
+    """Return the CPU's feature flags as /proc/cpuinfo names them (empty where unreadable)."""
+    try:
+        return frozenset(Path('/proc/cpuinfo').read_text().split())
+    except OSError:
+        return frozenset()
+
+
 def int8_native():
     """
     Tell whether int8 convolutions run at their fast rate here (what precision 'auto' uses).
 
-    True on CPUs with AVX512-VNNI, AVX-VNNI or AMX-INT8 (read from /proc/cpuinfo) when this
-    torch has oneDNN's int8 convolution.
+    True on CPUs with AVX512-VNNI, AVX-VNNI or AMX-INT8 (`cpu_flags`) when this torch has
+    oneDNN's int8 convolution.
     """
-    if not int8_available():
-        return False
-    try:
-        flags = Path('/proc/cpuinfo').read_text().split()
-    except OSError:
-        return False
-    return any(f in flags for f in ('avx512_vnni', 'avx_vnni', 'amx_int8'))
+    return int8_available() and bool(cpu_flags() & {'avx512_vnni', 'avx_vnni', 'amx_int8'})
 
 
 class Int8Branch:
