@@ -28,7 +28,7 @@ def ros():
 @pytest.fixture(scope='module')
 def net():
     """Return the shipped CNN, loaded once per test module (torch only where it is used)."""
-    from gcp_stereo_ros.stereo.cnn import load_net
+    from gcp_stereo_ros.stereo.cnn.network import load_net
     return load_net()
 
 

@@ -13,9 +13,10 @@ import sys
 import threading
 
 from gcp_stereo_ros.evaluation.datasets import load_frame
-from gcp_stereo_ros.stereo import cost, cost_cuda, gcp, gcp_cuda, gpu, sgm, sgm_cuda
-from gcp_stereo_ros.stereo.cnn import confidence, load_net
+from gcp_stereo_ros.stereo import cost, gcp, sgm
+from gcp_stereo_ros.stereo.cnn.network import confidence, load_net
 from gcp_stereo_ros.stereo.config import StereoConfig
+from gcp_stereo_ros.stereo.cuda import cost as cost_cuda, gcp as gcp_cuda, gpu, sgm as sgm_cuda
 from gcp_stereo_ros.stereo.images import standardize
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
@@ -90,7 +91,7 @@ def sgm_volume(crop, kind, nd=ND):
 
 
 def check_sgm_and_wta(volume, p1, p2, paths, top, options):
-    """Check `sgm_cuda` against the CPU, exactly: S, and the WTA with each (subpixel, lr)."""
+    """Check `cuda.sgm` against the CPU, exactly: S, and the WTA with each (subpixel, lr)."""
     want = sgm.aggregate(volume, p1, p2, paths)
     total = sgm_cuda.aggregate(on_gpu(volume)[0], p1, p2, paths, top)
     assert total.dtype == gpu.VOLUME_TYPES[volume.dtype]
@@ -109,7 +110,7 @@ def test_cuda_sgm_and_wta(crop, paths, kind):
     """
     Check SGM and WTA against the CPU's on a 10x16 cut of the crop: both exact.
 
-    float32 too: the kernel sums in the CPU's order (see `sgm_cuda`).
+    float32 too: the kernel sums in the CPU's order (see `cuda.sgm`).
     """
     volume, *penalty = sgm_volume(crop, kind)
     volume = np.ascontiguousarray(volume[4:14, 16:])

@@ -10,10 +10,11 @@ the whole pipeline.
 from functools import partial
 
 from cuda_checks import host, ND, on_gpu
-from gcp_stereo_ros.stereo import postprocess, postprocess_cuda, sgm
-from gcp_stereo_ros.stereo.backend_cuda import CudaBackend
-from gcp_stereo_ros.stereo.cnn import confidence, load_net
+from gcp_stereo_ros.stereo import postprocess, sgm
+from gcp_stereo_ros.stereo.cnn.network import confidence, load_net
 from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
+from gcp_stereo_ros.stereo.cuda import postprocess as postprocess_cuda
+from gcp_stereo_ros.stereo.cuda.backend import CudaBackend
 from gcp_stereo_ros.stereo.images import standardize
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np

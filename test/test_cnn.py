@@ -3,12 +3,13 @@ from dataclasses import replace
 from pathlib import Path
 
 from gcp_stereo_ros.evaluation.datasets import load_frame
-from gcp_stereo_ros.stereo.cnn import (_first_layer_bf16, calibrated, confidence, descriptors,
-                                       GcpNet, load_net, network_input, STRIP_ROWS)
-from gcp_stereo_ros.stereo.cnn_cuda import device_confidence
+from gcp_stereo_ros.stereo.cnn.network import (_first_layer_bf16, calibrated, confidence,
+                                               descriptors, GcpNet, load_net, network_input,
+                                               STRIP_ROWS)
+from gcp_stereo_ros.stereo.cnn.weights import DEFAULT_WEIGHTS
+from gcp_stereo_ros.stereo.cuda.cnn import device_confidence
 from gcp_stereo_ros.stereo.gcp import gcp_quality, select
 from gcp_stereo_ros.stereo.images import gray_pair, standardize
-from gcp_stereo_ros.stereo.weights import DEFAULT_WEIGHTS
 from gcp_stereo_ros.tools import train
 import numpy as np
 import pytest

@@ -4,15 +4,15 @@ import shutil
 
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
-from gcp_stereo_ros.stereo import cnn_filter
-from gcp_stereo_ros.stereo.cnn import (calibrated, confidence, load_net, network_input, PAD,
-                                       STRIP_ROWS)
-from gcp_stereo_ros.stereo.cnn_correlation import first_argmax
-from gcp_stereo_ros.stereo.cnn_cuda import device_confidence
+from gcp_stereo_ros.stereo.cnn import filter as cnn_filter
+from gcp_stereo_ros.stereo.cnn.correlation import first_argmax
+from gcp_stereo_ros.stereo.cnn.network import (calibrated, confidence, load_net, network_input,
+                                               PAD, STRIP_ROWS)
+from gcp_stereo_ros.stereo.cnn.weights import calibration_key, DEFAULT_WEIGHTS, side_file
 from gcp_stereo_ros.stereo.config import PRESETS, StereoConfig, UNFILTERED
+from gcp_stereo_ros.stereo.cuda.cnn import device_confidence
 from gcp_stereo_ros.stereo.images import gray_pair
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from gcp_stereo_ros.stereo.weights import calibration_key, DEFAULT_WEIGHTS, side_file
 import numpy as np
 import pytest
 from scipy.ndimage import uniform_filter

@@ -5,14 +5,14 @@ import shutil
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
 from gcp_stereo_ros.ros.cnn_setup import cnn_precision
-from gcp_stereo_ros.stereo import cnn_int8
 from gcp_stereo_ros.stereo.cancel import CancelFlag, Cancelled
-from gcp_stereo_ros.stereo.cnn import (bf16_native, confidence, descriptors, load_net,
-                                       network_input)
+from gcp_stereo_ros.stereo.cnn import int8 as cnn_int8
+from gcp_stereo_ros.stereo.cnn.network import (bf16_native, confidence, descriptors, load_net,
+                                               network_input)
+from gcp_stereo_ros.stereo.cnn.weights import DEFAULT_WEIGHTS, INT8_KEY, side_file
 from gcp_stereo_ros.stereo.config import StereoConfig
 from gcp_stereo_ros.stereo.images import gray_pair
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from gcp_stereo_ros.stereo.weights import DEFAULT_WEIGHTS, INT8_KEY, side_file
 import numpy as np
 import pytest
 import torch

@@ -15,8 +15,8 @@ import pytest
 
 EXTRA = "device cuda is the optional extra .[cuda]: pip install 'gcp_stereo_ros[cuda]'"
 pytest.importorskip('numba_cuda', reason=EXTRA)
-from gcp_stereo_ros.stereo import gpu  # noqa: E402, I100 (after the skip)
-from gcp_stereo_ros.stereo.config import StereoConfig  # noqa: E402
+from gcp_stereo_ros.stereo.config import StereoConfig  # noqa: E402, I100 (after the skip)
+from gcp_stereo_ros.stereo.cuda import gpu  # noqa: E402
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline  # noqa: E402
 from numba import cuda, typeof  # noqa: E402
 import numpy as np  # noqa: E402
@@ -97,7 +97,7 @@ def test_cuda_kernels_compile_for_a_gpu(data_dir, monkeypatch):
 
 def test_the_gpu_confidence_runs_float32_as_ieee_not_tf32():
     """On an H200, TF32 convolutions moved the confidence of bf16: false by up to 1.3e-3."""
-    from gcp_stereo_ros.stereo.cnn_cuda import ieee_float32
+    from gcp_stereo_ros.stereo.cuda.cnn import ieee_float32
     backends = (torch.backends.cudnn.conv, torch.backends.cuda.matmul)
     before = [b.fp32_precision for b in backends]
     try:

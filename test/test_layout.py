@@ -13,7 +13,13 @@ RULES = {
     'stereo': ROS | {'gcp_stereo_ros.ros', 'gcp_stereo_ros.tools', 'gcp_stereo_ros.evaluation'},
     'evaluation': ROS | {'gcp_stereo_ros.ros', 'gcp_stereo_ros.tools'},
     'ros': {'gcp_stereo_ros.tools', 'gcp_stereo_ros.evaluation'},
+    # the network and its CPU helpers: no GPU twin, no pipeline stage
+    'stereo/cnn': {'gcp_stereo_ros.stereo.cuda', 'gcp_stereo_ros.stereo.pipeline',
+                   'gcp_stereo_ros.stereo.backend'},
 }
+# The CPU's stages never import their CUDA twins: only `backend` reaches stereo/cuda/ (lazily,
+# for a GPU device).
+CUDA = 'gcp_stereo_ros.stereo.cuda'
 
 
 def imported(source, module):
@@ -57,6 +63,15 @@ def test_import_rule(sub):
     assert len(files) >= 4, files
     for path in files:
         bad = violations(imported(path.read_text(), module_name(path)), RULES[sub])
+        assert not bad, f'{path.relative_to(PACKAGE.parent)} imports {bad}'
+
+
+def test_only_the_backend_reaches_the_cuda_twins():
+    files = [p for p in sorted((PACKAGE / 'stereo').rglob('*.py'))
+             if 'cuda' not in p.relative_to(PACKAGE).parts and p.name != 'backend.py']
+    assert len(files) >= 15, files
+    for path in files:
+        bad = violations(imported(path.read_text(), module_name(path)), {CUDA})
         assert not bad, f'{path.relative_to(PACKAGE.parent)} imports {bad}'
 
 
@@ -111,7 +126,7 @@ def package_modules(names, modules):
 def test_no_import_circle():
     modules = module_imports()
     graph = {m: package_modules(top | lazy, modules) - {m} for m, (top, lazy) in modules.items()}
-    assert 'gcp_stereo_ros.stereo.backend_cuda' in graph['gcp_stereo_ros.stereo.backend']
+    assert 'gcp_stereo_ros.stereo.cuda.backend' in graph['gcp_stereo_ros.stereo.backend']
     state = {}
 
     def visit(m, trail):
@@ -140,7 +155,8 @@ def test_imports_inside_functions_load_only_optional_dependencies():
                 optional(n) for n in package_modules(top, modules) - {m})
         return heavy[m]
 
-    assert optional('gcp_stereo_ros.stereo.backend_cuda') and optional('gcp_stereo_ros.stereo.cnn')
+    assert optional('gcp_stereo_ros.stereo.cuda.backend')
+    assert optional('gcp_stereo_ros.stereo.cnn.network')
     assert not optional('gcp_stereo_ros.stereo.pipeline')  # torch only where GCPs are used
     for m, (_, lazy) in modules.items():
         plain = {n for n in lazy if not violations({n}, OPTIONAL)}

@@ -9,8 +9,8 @@ from gcp_stereo_ros.ros.camera import Rectifier, StereoModel
 from gcp_stereo_ros.ros.params import config_from_params
 from gcp_stereo_ros.ros.rosimage import (array_to_compressed_fields, array_to_image_fields,
                                          image_to_array)
-from gcp_stereo_ros.stereo.cnn import bf16_native
-from gcp_stereo_ros.stereo.cnn_int8 import int8_native
+from gcp_stereo_ros.stereo.cnn.int8 import int8_native
+from gcp_stereo_ros.stereo.cnn.network import bf16_native
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest

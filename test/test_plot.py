@@ -1,7 +1,7 @@
 """gcp-stereo-plot: the curves of the shipped weights' own training run, and a sweep."""
 import json
 
-from gcp_stereo_ros.stereo.weights import DEFAULT_WEIGHTS
+from gcp_stereo_ros.stereo.cnn.weights import DEFAULT_WEIGHTS
 from gcp_stereo_ros.tools import plot
 import matplotlib.image
 import numpy as np

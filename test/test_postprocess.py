@@ -7,14 +7,14 @@ float rounding and bf16 differences, and any real regression crosses them.
 import cv2
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
-from gcp_stereo_ros.stereo import disparity_confidence_cuda
+from gcp_stereo_ros.stereo.cnn.weights import confidence_fit
 from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
+from gcp_stereo_ros.stereo.cuda import disparity_confidence as disparity_confidence_cuda
 from gcp_stereo_ros.stereo.disparity_confidence import CONFIDENCE_FEATURES, features, margin
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from gcp_stereo_ros.stereo.postprocess import (background_fits, backgrounds, cut_short,
-                                               invalidate, speckles, valid_window)
+from gcp_stereo_ros.stereo.postprocess import (background_fits, backgrounds, cut_short, invalidate,
+                                               speckles, valid_window)
 from gcp_stereo_ros.stereo.sgm import winners
-from gcp_stereo_ros.stereo.weights import confidence_fit
 import numpy as np
 import pytest
 import torch
@@ -252,8 +252,8 @@ def test_fit_confidence_fits_each_downsample_on_its_grid(data_dir, tmp_path):
 
     And for a radius > 0 the CNN calibration of that radius first, which theta reads.
     """
-    from gcp_stereo_ros.stereo.cnn import load_net
-    from gcp_stereo_ros.stereo.weights import DEFAULT_WEIGHTS
+    from gcp_stereo_ros.stereo.cnn.network import load_net
+    from gcp_stereo_ros.stereo.cnn.weights import DEFAULT_WEIGHTS
     from gcp_stereo_ros.tools import fit_confidence
     weights = tmp_path / 'net.pt'
     weights.write_bytes(DEFAULT_WEIGHTS.read_bytes())

@@ -1,6 +1,6 @@
 """gcp-stereo-train --init: training starts from given weights and records them."""
-from gcp_stereo_ros.stereo.cnn import load_net
-from gcp_stereo_ros.stereo.weights import DEFAULT_WEIGHTS
+from gcp_stereo_ros.stereo.cnn.network import load_net
+from gcp_stereo_ros.stereo.cnn.weights import DEFAULT_WEIGHTS
 from gcp_stereo_ros.tools import train
 import torch
 

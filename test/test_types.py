@@ -15,7 +15,7 @@ import sys
 ROOT = Path(__file__).resolve().parents[1]
 # The public API's modules: each checked by mypy with every function annotated.
 API = ('stereo/config.py', 'stereo/pipeline.py', 'stereo/stages.py', 'stereo/backend.py',
-       'stereo/weights.py', 'evaluation/datasets.py', 'evaluation/metrics.py',
+       'stereo/cnn/weights.py', 'evaluation/datasets.py', 'evaluation/metrics.py',
        'evaluation/viz.py')
 
 

@@ -7,7 +7,7 @@ without them runs without it.
 """
 import numpy as np
 
-from ..stereo.weights import int8_entry
+from ..stereo.cnn.weights import int8_entry
 
 
 def load_cnn(pipeline):
@@ -21,7 +21,7 @@ def cnn_precision(config):
     """Say how a StereoConfig runs the CNN: 'int8', 'bf16', 'fp32' or 'not used'."""
     if not config.use_gcp:
         return 'not used'
-    from ..stereo.cnn import resolve_precision  # optional: torch
+    from ..stereo.cnn.network import resolve_precision  # optional: torch
     return resolve_precision(config.precision, config.device,
                              int8_entry(config.weights) is not None)
 
@@ -30,7 +30,7 @@ def config_warnings(pipeline):
     """Return what is wrong with a valid pipeline's config as used on a stream, as sentences."""
     config = pipeline.config
     if config.use_gcp:
-        from ..stereo.cnn import calibrated  # optional: torch
+        from ..stereo.cnn.network import calibrated  # optional: torch
         top = float(calibrated(pipeline.net, np.ones(1, np.float32),
                                config.matched_radius)[0])
         if config.theta >= top:

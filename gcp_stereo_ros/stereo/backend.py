@@ -2,7 +2,7 @@
 The pipeline's stages on the CPU (`CpuBackend`), and the backend of a device (`backend`).
 
 `backend(device)` returns the `stages.Backend` of a `StereoConfig.device`: this module's
-`CpuBackend`, or `backend_cuda.CudaBackend` on a GPU.
+`CpuBackend`, or `cuda.backend.CudaBackend` on a GPU.
 """
 from functools import partial
 from typing import Any
@@ -56,7 +56,7 @@ class CpuBackend(KeptBuffers):
                        seconds: dict[str, float] | None,
                        cancel: CancelFlag | None = None) -> CnnConfidence:
         """Return `cnn.confidence` (torch is imported with the CNN)."""
-        from .cnn import confidence
+        from .cnn.network import confidence
         return CnnConfidence(*confidence(net, *pair, max_disp, precision, seconds=seconds,
                                          cancel=cancel, radius=radius, scratch=scratch))
 
@@ -123,7 +123,7 @@ def backend(device: str) -> Backend:
     """
     if device == 'cpu':
         return CpuBackend()
-    from .backend_cuda import CudaBackend  # numba-cuda is an optional dependency
+    from .cuda.backend import CudaBackend  # numba-cuda is an optional dependency
     return CudaBackend(device)
 
 

@@ -9,7 +9,7 @@ import ctypes
 import numpy as np
 
 from . import cost as cost_mod
-from .cnn_filter import scratch_size
+from .cnn.filter import scratch_size
 from .config import DOWNSAMPLE
 from .sgm import directions, path_sum_bound
 
@@ -80,7 +80,7 @@ def memory_bytes(cfg, height, width):
     At the matching resolution (H/downsample x W/downsample, D = matched_disp): the cost and
     path-sum volumes (H x W x D each, kept between frames) and the SGM sweep buffers (3 rows
     of each path from above, W x D each), with `cnn_filter_radius` the CNN filter's rows of
-    the volume (`cnn_filter.scratch_size`, kept as well), plus whichever needs more:
+    the volume (`cnn.filter.scratch_size`, kept as well), plus whichever needs more:
     the CNN's arrays with one strip's activations (two images, 64 float32 maps of
     STRIP_ROWS + 8 rows), or
     PIXEL_BYTES per pixel for the later stages; with downsample, FULL_PIXEL_BYTES per
@@ -100,7 +100,7 @@ def _memory_terms(cfg, height, width):
     per_disparity = (2 * h + sweep_rows) * w * itemsize
     fixed = PIXEL_BYTES * h * w
     if cfg.use_gcp:
-        from .cnn import FEATURES, PAD, STRIP_ROWS
+        from .cnn.network import FEATURES, PAD, STRIP_ROWS
         strip = 2 * FEATURES * (min(STRIP_ROWS, h) + 2 * PAD) * (w + 2 * PAD) * 4
         pixel = CNN_PIXEL_BYTES + (GUIDE_PIXEL_BYTES if cfg.matched_radius else 0)
         fixed = max(fixed, pixel * h * w + STRIP_LAYERS * strip)

@@ -15,12 +15,12 @@ import numpy as np
 
 from .backend import backend
 from .cancel import CancelFlag
-from .cnn_filter import scratch_size
+from .cnn.filter import scratch_size
+from .cnn.weights import confidence_fit
 from .config import StereoConfig
 from .images import bin_area, gray_pair, subsample, upsample
 from .memory import call_glibc, check_memory, volume_arithmetic
 from .stages import Backend, CnnConfidence
-from .weights import confidence_fit
 
 # The paths of plain SGM for `plain_check` and `gcp_plain_check`: horizontal and vertical
 # (chosen on the validation frames: doc/published.md, "Plain SGM as a second opinion").
@@ -31,7 +31,7 @@ def filter_size(shape: tuple[int, int], max_disp: int, radius: int) -> int:
     """Return the float32 values the CPU's CNN filter holds for a pair of `shape` (0 without)."""
     if not radius:
         return 0
-    from .cnn import STRIP_ROWS  # torch is imported only when GCPs are used
+    from .cnn.network import STRIP_ROWS  # torch is imported only when GCPs are used
     return scratch_size(*shape, max_disp, radius, STRIP_ROWS)
 
 
@@ -134,10 +134,10 @@ class StereoPipeline:
         Return the CNN, loaded on first use, on the config's device.
 
         ValueError if its weights have no calibration for the config's matched_radius, or
-        precision 'int8' cannot run (`cnn_int8.branch`).
+        precision 'int8' cannot run (`cnn.int8.branch`).
         """
-        from .cnn import calibration, load_net  # torch is imported only when GCPs are used
-        from .cnn_int8 import branch
+        from .cnn.network import calibration, load_net  # torch is imported only when GCPs are used
+        from .cnn.int8 import branch
         if self._net is None:
             self._net = load_net(self.config.weights or None, self.backend.torch_device)
         calibration(self._net, self.config.matched_radius)

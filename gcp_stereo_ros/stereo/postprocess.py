@@ -26,8 +26,8 @@ What of the winner-takes-all disparity to publish: the invalidation; ROS-free.
   GCPs: a second opinion without the CNN, last, so that the tests before it do not see the
   gaps it leaves.
 A value of 0 (False) turns each off; why each test and its default: doc/published.md.
-`postprocess_cuda.invalidate` is the twin on a GPU: from the same inputs (`sgm.winners`,
-`sgm_cuda.winners`) the same pixels. With `downsample` f everything here runs on the
+`cuda.postprocess.invalidate` is the twin on a GPU: from the same inputs (`sgm.winners`,
+`cuda.sgm.winners`) the same pixels. With `downsample` f everything here runs on the
 matching grid, 1 / f of the images, before the result is blown up to full size: the sizes
 and disparities the parameters give in full-size pixels are scaled to it (a speckle of
 `speckle_size` / f^2 matching pixels, `speckle_range` / f).

@@ -402,7 +402,7 @@ def winners(total, subpixel=False, lr_check=False, cancel=None):
     right-view winner at x - d differs from d by more than 1 px or x - d < 0 (all True
     without `lr_check`); float32 (H, W) `s_best` = S(d) of the winner and `s_second` = the least
     S(d) over |d - winner| > 1 (inf where no such d exists), which the uniqueness test and
-    the confidence use. `sgm_cuda.winners` is the GPU twin. `cancel`: a CancelFlag; once
+    the confidence use. `cuda.sgm.winners` is the GPU twin. `cancel`: a CancelFlag; once
     set, the remaining rows are skipped.
     """
     total = as_volume(np.asarray(total))

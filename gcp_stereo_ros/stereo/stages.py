@@ -4,7 +4,7 @@ The interface of the pipeline's stages: `Backend`, and the named types its stage
 `StereoPipeline` runs the stages once, in order, over buffers it passes explicitly; a stage
 returns arrays or a named type of them and never calls back. Two implementations:
 `backend.CpuBackend` (numpy arrays, numba kernels, torch for the CNN) and
-`backend_cuda.CudaBackend` (torch tensors on a GPU, numba-cuda kernels), with the same
+`cuda.backend.CudaBackend` (torch tensors on a GPU, numba-cuda kernels), with the same
 results within float rounding (integer outputs and uint16 volumes bit-identical).
 """
 from typing import Any, NamedTuple, Protocol
@@ -46,7 +46,7 @@ class Buffers(NamedTuple):
 
     cost: Array | None  # the cost volume
     total: Array | None  # the summed path costs
-    scratch: Array | None  # float32 rows of the CPU's CNN filter (`cnn_filter.StripFilter`)
+    scratch: Array | None  # float32 rows of the CPU's CNN filter (`cnn.filter.StripFilter`)
 
 
 class KeptBuffers:

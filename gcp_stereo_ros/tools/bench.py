@@ -32,14 +32,14 @@ from .cli import console_main, positive_int
 from .evaluate import opencv_sgbm
 from ..evaluation.datasets import list_frames, load_frame
 from ..stereo import gpu
-from ..stereo.cnn import resolve_precision
+from ..stereo.cnn.network import resolve_precision
+from ..stereo.cnn.weights import int8_entry
 from ..stereo.config import StereoConfig
 from ..stereo.cost import cost_volume
 from ..stereo.images import gray_pair
 from ..stereo.memory import mmap_large_arrays
 from ..stereo.pipeline import StereoPipeline
 from ..stereo.sgm import aggregate
-from ..stereo.weights import int8_entry
 
 KITTI_SIZE = (1242, 375)
 

@@ -26,10 +26,10 @@ from ..evaluation.datasets import list_frames, load_frame
 from ..evaluation.metrics import error_rates
 from ..evaluation.viz import disparity_picture, save_png
 from ..stereo.backend import cnn_confidence
+from ..stereo.cnn.weights import int8_entry
 from ..stereo.config import PRESETS, StereoConfig
 from ..stereo.images import gray_pair
 from ..stereo.pipeline import StereoPipeline
-from ..stereo.weights import int8_entry
 
 METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
 # Fields that options set: --set (and gcp-stereo-plot's --grid) may not.
@@ -211,7 +211,7 @@ def evaluate_frame(runner, args, source, name):
         rows.append({'method': method, 'frame': name, **error_rates(disp, frame.gt, frame.valid),
                      'seconds': seconds})
         if (cnn := cnn_method(method)) is not None:  # what precision 'auto' gave, per row
-            from ..stereo.cnn import resolve_precision
+            from ..stereo.cnn.network import resolve_precision
             cfg = runner.config(cnn, max_disp)
             rows[-1]['precision'] = resolve_precision(cfg.precision, cfg.device,
                                                       int8_entry(cfg.weights) is not None)

@@ -38,12 +38,12 @@ import yaml
 from .cli import console_main
 from .evaluate import Runner, select_frames
 from ..evaluation.datasets import load_frame
+from ..stereo.cnn.weights import calibration_key, INT8_KEY, method_key, side_file
 from ..stereo.config import DOWNSAMPLE, RANGES, StereoConfig, UNFILTERED
 from ..stereo.disparity_confidence import (CONFIDENCE_FEATURES, CONFIDENCE_PX, ConfidenceFit,
                                            features)
 from ..stereo.images import gray_pair, subsample, upsample
 from ..stereo.postprocess import cut_short
-from ..stereo.weights import calibration_key, INT8_KEY, method_key, side_file
 
 RIDGE = 1e-6  # keeps the logistic fit defined when a feature is constant on the samples
 ITERATIONS = 25
@@ -109,8 +109,8 @@ def split_frames(path, part='validation'):
 
 def fit_int8(args, path, fits):
     """Fit the int8 CNN's activation ranges on the split's training frames into `fits`."""
-    from ..stereo.cnn import load_net, network_input  # torch is loaded with them
-    from ..stereo.cnn_int8 import fit as fit_ranges
+    from ..stereo.cnn.network import load_net, network_input  # torch is loaded with them
+    from ..stereo.cnn.int8 import fit as fit_ranges
     frames = [load_frame(source, name) for source, name in select_frames(
         args.dataset, split_frames(args.split, 'train'))]
     inputs = (network_input(*gray_pair(f.left, f.right)) for f in frames)
@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> None:
                       if radius})
     if matched:
         from .train import calibration_samples, fit_calibration  # torch is loaded with them
-        from ..stereo.cnn import load_net
+        from ..stereo.cnn.network import load_net
         net = load_net(args.weights or None)
     for radius in matched:
         cosine, probability = fit_calibration(*calibration_samples(net, frames, radius))

@@ -1,5 +1,5 @@
 """
-Train the Siamese GCP CNN (`gcp_stereo_ros.stereo.cnn.GcpNet`) with the paper's hinge loss.
+Train the Siamese GCP CNN (`gcp_stereo_ros.stereo.cnn.network.GcpNet`) with the paper's hinge loss.
 
 The examples (`train_crops`): every GT pixel of random crops (32x256 left pixels; each from
 a view chosen uniformly) against a positive and a negative right patch, max(0, 0.2 + s_neg -
@@ -57,7 +57,7 @@ from .cli import console_main
 from .train_crops import Augment, crop_scores, CropLoss, draw_crop, hinge, views
 from ..evaluation.datasets import load_frames
 from ..stereo.backend import cnn_confidence
-from ..stereo.cnn import GcpNet, load_net
+from ..stereo.cnn.network import GcpNet, load_net
 from ..stereo.gcp import gcp_quality
 
 CROP = (32, 256)  # left pixels per crop (rows, columns)

@@ -27,7 +27,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from ..stereo.cnn import network_input, PAD
+from ..stereo.cnn.network import network_input, PAD
 from ..stereo.gcp import right_view_agrees
 from ..stereo.images import gray_pair
 

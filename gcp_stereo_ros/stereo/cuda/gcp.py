@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from . import gpu
-from .gcp import levels
+from ..gcp import levels
 
 
 @cuda.jit

@@ -20,7 +20,7 @@ the activations of a strip stay in the CPU caches (measured on a 2-core Zen 4 fo
 pair when first written: bf16 autocast convolutions 0.79 s for the whole images, 0.54 s in
 strips of 64 rows) and the descriptors of the whole images are never held (2 x 119 MB for
 a KITTI pair in float32).
-On a GPU (`cnn_cuda.device_confidence`) the same strips are correlated in torch on the
+On a GPU (`cuda.cnn.device_confidence`) the same strips are correlated in torch on the
 device, as batched matrix products over blocks of columns.
 
 Calibration: the raw cosine is high almost everywhere (most pixels score above 0.9), so a
@@ -28,7 +28,7 @@ threshold on it says little. The weights file carries a monotone map, fitted on 
 frames by the training tool, from the raw cosine to the probability that the CNN disparity
 is within 1 px of the truth; `confidence` returns that probability, so theta = 0.6 keeps
 the pixels whose CNN disparity is right with probability above 60 %. Weights without a map
-give the raw cosine. The guided-filtered confidence (`cnn_filter`) has calibrations of its
+give the raw cosine. The guided-filtered confidence (`cnn.filter`) has calibrations of its
 own, one per radius, in the fits file beside the weights (`tools/fit_confidence.py`).
 """
 import functools
@@ -39,11 +39,11 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from . import cnn_filter, cnn_int8
-from .cnn_correlation import best_match, EPS, volume as correlation_volume
-from .cost import check_max_disp
-from .images import gray_pair, standardize
+from . import filter as cnn_filter, int8 as cnn_int8
+from .correlation import best_match, EPS, volume as correlation_volume
 from .weights import cnn_calibrations, int8_entry, weights_path
+from ..cost import check_max_disp
+from ..images import gray_pair, standardize
 
 PATCH = 9
 FEATURES = 64
@@ -152,7 +152,7 @@ def bf16_native(device='cpu'):
     Tell whether bfloat16 convolutions run natively on `device` (for precision 'auto').
 
     True on CUDA devices of compute capability 8.0 or more (Ampere on; torch emulates
-    bfloat16 on older ones) and on CPUs with avx512_bf16 or AMX (`cnn_int8.cpu_flags`);
+    bfloat16 on older ones) and on CPUs with avx512_bf16 or AMX (`cnn.int8.cpu_flags`);
     elsewhere bfloat16 runs emulated, slower than float32.
     """
     device = torch.device(device)
@@ -165,7 +165,7 @@ def resolve_precision(precision, device='cpu', int8_fitted=False):
     """
     Return the CNN's arithmetic for a `StereoConfig.precision`: 'int8', 'bf16' or 'fp32'.
 
-    'auto' gives 'int8' on a CPU where `cnn_int8.int8_native` if the weights have an int8
+    'auto' gives 'int8' on a CPU where `cnn.int8.int8_native` if the weights have an int8
     entry (`int8_fitted`: `weights.int8_entry`), else 'bf16' where `bf16_native(device)`,
     else 'fp32'; any other value is returned as it is.
     """
@@ -199,7 +199,7 @@ def descriptors(net, x, precision='fp32', cancel=None):
     permute to (N, H, W, 64) is then free), each convolution with its ReLU (`_conv_relu`).
     `precision` (resolved, `resolve_precision`): 'fp32'; 'bf16', the first layer as
     `_first_layer_bf16` and the others in bfloat16 with float32 accumulation; 'int8' (CPU),
-    the quantized branch (`cnn_int8.branch`), bfloat16 descriptors. `cancel`: a CancelFlag,
+    the quantized branch (`cnn.int8.branch`), bfloat16 descriptors. `cancel`: a CancelFlag,
     checked before each layer (raises Cancelled).
     """
     if precision == 'int8':
@@ -271,10 +271,10 @@ def confidence(net, left, right, max_disp, precision='fp32', volume=False, secon
     `descriptors`); `precision`: a `StereoConfig.precision` (`resolve_precision`). The L2
     normalization (float32) and the correlation run in a numba kernel, strip by strip,
     streaming over d without materializing the volume. With `radius` > 0 the volume of each
-    strip is materialized and guided-filtered first (`cnn_filter.StripFilter`, in `scratch` if
+    strip is materialized and guided-filtered first (`cnn.filter.StripFilter`, in `scratch` if
     given). `seconds`: a dict that gains the wall time of the convolutions ('cnn') and of
     the correlation ('confidence'). `cancel`: a CancelFlag, checked before each layer of
-    each strip (raises Cancelled). `cnn_cuda.device_confidence` is the GPU twin.
+    each strip (raises Cancelled). `cuda.cnn.device_confidence` is the GPU twin.
 
     Returns (cof_c, cof_d, cof_dr): float32 (H, W) max_d Vol in [0, 1] mapped through the
     net's calibration for `radius` (`calibrated`; the raw value without one), int32 (H, W)

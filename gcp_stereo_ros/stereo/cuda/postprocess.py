@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from . import gpu
-from .postprocess import depth_limits, inside, SPECKLE_SCALE
+from ..postprocess import depth_limits, inside, SPECKLE_SCALE
 
 INVALID = -SPECKLE_SCALE  # filterSpeckles' newVal: -1 px in its fixed point
 NAN = float('nan')

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from . import gpu
-from .cost import check_max_disp, max_cost, volume_type
+from ..cost import check_max_disp, max_cost, volume_type
 
 
 @cuda.jit

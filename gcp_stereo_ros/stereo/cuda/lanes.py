@@ -3,7 +3,7 @@ The exchange between the lanes of a group that shares one SGM path or one WTA pi
 
 A group is `lanes(D)` consecutive threads of a warp (8, 16 or 32, aligned within the warp),
 lane l holding d = l, l + lanes, l + 2 lanes, ... of the D disparities. The kernels of
-`sgm_cuda` call the two functions here for whatever crosses lanes: `exchange` (each lane's
+`cuda.sgm` call the two functions here for whatever crosses lanes: `exchange` (each lane's
 cyclic neighbours' values and the group's minimum: one SGM step) and `lanes_argmin` (the
 group's first minimum: the WTA).
 

@@ -6,7 +6,7 @@ in torch on the device, as batched matrix products over blocks of BAND_BLOCK col
 (`_band_volume`); without a filter the best disparities are taken from each strip's volume
 (`_band_best`; the right view as the left view of the mirrored pair), with one the strip's
 volume, with its halo of rows, is guided-filtered first (`filtered_best`, the twin of
-`cnn_filter.filtered_best`). The results equal `cnn.confidence`'s within float rounding:
+`cnn.filter.filtered_best`). The results equal `cnn.confidence`'s within float rounding:
 float32 work runs in IEEE float32 (`ieee_float32`), never TF32.
 """
 from contextlib import contextmanager
@@ -15,9 +15,9 @@ import time
 import torch
 import torch.nn.functional as F
 
-from . import cnn_filter
-from .cnn import calibrated, descriptors, EPS, PAD, resolve_precision, STRIP_ROWS
-from .cost import check_max_disp
+from ..cnn import filter as cnn_filter
+from ..cnn.network import calibrated, descriptors, EPS, PAD, resolve_precision, STRIP_ROWS
+from ..cost import check_max_disp
 
 BAND_BLOCK = 128  # columns per block of `_band_volume`
 
@@ -122,7 +122,7 @@ def _synchronize(device):
 
 def _means(x, radius):
     """
-    Return the window means of x (..., rows, W), each window clipped to x (`cnn_filter`).
+    Return the window means of x (..., rows, W), each window clipped to x (`cnn.filter`).
 
     A clipped window is a rectangle, so its mean is the column mean of the row means: two
     passes of 2 r + 1 reads per pixel instead of one of (2 r + 1)^2.
@@ -134,7 +134,7 @@ def _means(x, radius):
 
 def filtered_best(vol, guide, radius, first, rows):
     """
-    Return (cof_c, cof_d, cof_dr) of a strip, the torch twin of `cnn_filter.filtered_best`.
+    Return (cof_c, cof_d, cof_dr) of a strip, the torch twin of `cnn.filter.filtered_best`.
 
     `vol`: the raw volume (rows with the halo, W, D) on the device, `guide` the standardized
     left image's same rows (rows with the halo, W); the strip is rows first .. first + rows.

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .disparity_confidence import AROUND, CONFIDENCE_FEATURES, WIDE
+from ..disparity_confidence import AROUND, CONFIDENCE_FEATURES, WIDE
 
 
 def margin(s_best, s_second):

@@ -4,7 +4,7 @@ The CNN's correlation on the CPU: numba kernels over the raw descriptors of stri
 Vol(y, x, d) = <f_L(y, x), f_R(y, x - d)>, each descriptor L2-normalized (divided by
 max(its norm, EPS), as F.normalize does), the dot product capped at 1 (rounding may overshoot
 by an ulp), 0 where x - d < 0. `best_match` streams it, keeping the best disparities of both
-views; `volume` writes it (for `cnn_filter`), with the right view's. Both take the cells
+views; `volume` writes it (for `cnn.filter`), with the right view's. Both take the cells
 of each row from `_two_columns`, so they give the same bits. The descriptors come as
 `bits`: (2, rows, W, C) float32 bit patterns, as uint32 (`shift` 0) or as the upper halves
 of bfloat16 values in uint16 (`shift` 16), so both widen exactly.

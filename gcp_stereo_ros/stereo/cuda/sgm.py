@@ -8,7 +8,7 @@ of them, rounded up; D, nl and k are constants of the kernel compiled for that D
 lanes read and write neighbouring d of the (H, W, D) volume: a warp's load of 32 uint16
 costs touches two 32-byte sectors (four for float32). At each step a lane gets
 L_r(p - r, d -+ 1) from its cyclic neighbours and min_d L_r(p - r, d) of the group through
-`lanes_cuda.exchange` (warp shuffles, no barrier: each group steps on by itself), and reads
+`cuda.lanes.exchange` (warp shuffles, no barrier: each group steps on by itself), and reads
 C of the pixel AHEAD steps on, so loads are in flight while the chain of steps runs. The
 arithmetic is float32 for both volume types (uint16 sums stay below 2^17: exact), each L_r
 computed as (C - min L_r(p - r)) + the best predecessor term: the order in which the CPU's
@@ -25,7 +25,7 @@ uint16 KITTI volume at D = 128 and 16 paths) and about 2 (paths - 1) volumes mor
 traffic than a sum in place. The penalties and limits are the CPU's (`sgm.penalties`).
 
 The WTA, with the same lanes across the d of one pixel, its S in registers: the first
-minimum and the least S outside best +- 1 by `lanes_cuda.lanes_argmin`, the sub-pixel fit of
+minimum and the least S outside best +- 1 by `cuda.lanes.lanes_argmin`, the sub-pixel fit of
 `sgm.parabola_offset`; the left-right check reads the right view's winners, which a kernel of
 their own finds first with lanes along a diagonal of the volume (see `_right_winners`), so
 that also reads coalesced.
@@ -37,8 +37,8 @@ import numpy as np
 import torch
 
 from . import gpu
-from .lanes_cuda import exchange, exchange_bytes, lanes, lanes_argmin, per_lane, THREADS, WARP
-from .sgm import parabola_offset, penalties, summation_order
+from .lanes import exchange, exchange_bytes, lanes, lanes_argmin, per_lane, THREADS, WARP
+from ..sgm import parabola_offset, penalties, summation_order
 
 INF = np.float32(np.inf)
 AHEAD = 4  # steps whose costs a path's lanes read before the step that uses them

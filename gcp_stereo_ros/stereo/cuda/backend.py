@@ -3,18 +3,17 @@ The stages of the pipeline on a GPU (`StereoConfig.device` 'cuda[:N]'): `CudaBac
 
 Every array is a torch tensor on the device (`gpu`); the pair is uploaded once, the
 volumes stay there and what is published comes back in one download. Each stage is the
-CUDA twin beside its CPU stage (`cost_cuda`, `cnn_cuda`, `gcp_cuda`, `sgm_cuda`,
-`disparity_confidence_cuda`, `postprocess_cuda`).
+CUDA twin beside its CPU stage (`cuda.cost`, `cuda.cnn`, `cuda.gcp`, `cuda.sgm`,
+`cuda.disparity_confidence`, `cuda.postprocess`).
 """
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import (cnn_cuda, cost_cuda, disparity_confidence_cuda, gcp_cuda, gpu, postprocess_cuda,
-               sgm_cuda)
-from .cnn import padded_input
-from .cost import max_cost
-from .stages import Buffers, CnnConfidence, CostVolume, KeptBuffers, Winners
+from . import cnn, cost, disparity_confidence, gcp, gpu, postprocess, sgm
+from ..cnn.network import padded_input
+from ..cost import max_cost
+from ..stages import Buffers, CnnConfidence, CostVolume, KeptBuffers, Winners
 
 CNN_TYPES = (np.float32, np.int32, np.int32)  # of cof_c, cof_d, cof_dr
 ALIGN = 16  # bytes: where each array of a download starts
@@ -72,40 +71,39 @@ class CudaBackend(KeptBuffers):
 
     def cnn_confidence(self, net, pair, max_disp, precision, radius, scratch, seconds,
                        cancel=None):
-        """Return `cnn_cuda.device_confidence` of the standardized pair."""
+        """Return `cnn.device_confidence` of the standardized pair."""
         with gpu.current(self.device):
-            return CnnConfidence(*cnn_cuda.device_confidence(
+            return CnnConfidence(*cnn.device_confidence(
                 net, padded_input(pair[1]), max_disp, precision, seconds, radius))
 
-    def cost_volume(self, pair, max_disp, cost, window, scale, dtype, out, cancel=None):
-        """Return `cost_cuda.cost_volume`: of the gray pair for Census, standardized for SAD."""
+    def cost_volume(self, pair, max_disp, cost_name, window, scale, dtype, out, cancel=None):
+        """Return `cuda.cost.cost_volume`: of the gray pair for Census, standardized for SAD."""
         with gpu.current(self.device):
-            costs = cost_cuda.cost_volume(pair[0] if cost == 'census' else pair[1], max_disp,
-                                          cost, window, out, scale, dtype)
-        return CostVolume(costs, max_cost(cost, window) * scale)
+            costs = cost.cost_volume(pair[0] if cost_name == 'census' else pair[1], max_disp,
+                                     cost_name, window, out, scale, dtype)
+        return CostVolume(costs, max_cost(cost_name, window) * scale)
 
     def select_refine(self, volume, cnn, theta, c_hi, c_low, lr_check, plain):
-        """Return the refined `volume` and the GCPs (`gcp_cuda.select_refine`)."""
+        """Return the refined `volume` and the GCPs (`gcp.select_refine`)."""
         with gpu.current(self.device):
-            gcps = gcp_cuda.select_refine(volume.costs, *cnn, theta, c_hi, c_low, lr_check,
-                                          plain)
+            gcps = gcp.select_refine(volume.costs, *cnn, theta, c_hi, c_low, lr_check, plain)
         return CostVolume(volume.costs, max(volume.top, c_hi)), gcps
 
     def aggregate(self, volume, p1, p2, paths, out, cancel=None):
-        """Return `sgm_cuda.aggregate` of the volume into `out`."""
+        """Return `sgm.aggregate` of the volume into `out`."""
         with gpu.current(self.device):
-            return sgm_cuda.aggregate(volume.costs, p1, p2, paths, volume.top, out)
+            return sgm.aggregate(volume.costs, p1, p2, paths, volume.top, out)
 
     def disparity(self, total, cancel=None):
-        """Return `sgm_cuda.winners`' integer disparity."""
+        """Return `sgm.winners`' integer disparity."""
         with gpu.current(self.device):
-            return sgm_cuda.winners(total)[0]
+            return sgm.winners(total)[0]
 
     def winners(self, total, subpixel, cancel=None):
-        """Return `sgm_cuda.winners` with the left-right agreement, and the margin."""
+        """Return `sgm.winners` with the left-right agreement, and the margin."""
         with gpu.current(self.device):
-            disp, consistent, s_best, s_second = sgm_cuda.winners(total, subpixel, True)
-            return Winners(disp, consistent, disparity_confidence_cuda.margin(s_best, s_second))
+            disp, consistent, s_best, s_second = sgm.winners(total, subpixel, True)
+            return Winners(disp, consistent, disparity_confidence.margin(s_best, s_second))
 
     def median(self, disparity):
         """Return the 3x3 median of a (H, W) tensor, edges replicated as cv2.medianBlur."""
@@ -113,16 +111,16 @@ class CudaBackend(KeptBuffers):
         return padded.unfold(0, 3, 1).unfold(1, 3, 1).reshape(*disparity.shape, 9).median(2)[0]
 
     def disparity_confidence(self, fit, winners, cnn, gcps):
-        """Return `disparity_confidence_cuda.calibrated` of its features."""
+        """Return `disparity_confidence.calibrated` of its features."""
         cof_c, cof_d = (None, None) if cnn is None else cnn[:2]
         with gpu.current(self.device):
-            planes = disparity_confidence_cuda.features(*winners, cof_c, cof_d, gcps)
-            return disparity_confidence_cuda.calibrated(fit, planes)
+            planes = disparity_confidence.features(*winners, cof_c, cof_d, gcps)
+            return disparity_confidence.calibrated(fit, planes)
 
     def invalidate(self, winners, confidence, total, plain, cfg, camera):
-        """Return `postprocess_cuda.invalidate` and the confidence, on the GPU."""
+        """Return `postprocess.invalidate` and the confidence, on the GPU."""
         with gpu.current(self.device):
-            disp = postprocess_cuda.invalidate(*winners, cfg, camera, confidence, total, plain)
+            disp = postprocess.invalidate(*winners, cfg, camera, confidence, total, plain)
             if confidence is not None:
                 confidence.masked_fill_(torch.isnan(disp), 0.0)
         return disp, confidence

@@ -21,10 +21,10 @@ what the CNN sees), p = Vol(., ., d) and mean() the mean over the window clipped
 Cells with x - d < 0 have Vol = 0 (as in `cnn`) and take part in the means; they are never
 a best disparity. A row of Vol' reads 2r rows of Vol above and below it (`halo`). On the
 CPU `StripFilter` takes the CNN's descriptors strip by strip as `cnn.confidence` computes
-them: it correlates each strip's rows once into a ring of raw rows (`cnn_correlation.
+them: it correlates each strip's rows once into a ring of raw rows (`cnn.correlation.
 volume`, which also takes cof_dr), then filters them in one pass, block by block of columns,
 each block sliding its column sums down the rows and holding its last rows of a and b, so
-neither the coefficients nor Vol' are ever written out whole. `cnn_cuda.filtered_best` is
+neither the coefficients nor Vol' are ever written out whole. `cuda.cnn.filtered_best` is
 the torch twin. The float32 sums are slid (a row or column enters, one leaves) in a fixed
 order, so the results do not depend on the number of threads; they equal the formula's
 within float rounding (cof_c within 2e-5 of float64; cof_d differs only where two
@@ -33,7 +33,7 @@ disparities tie within that).
 from numba import njit, prange
 import numpy as np
 
-from .cnn_correlation import first_argmax, volume
+from .correlation import first_argmax, volume
 
 # Of the guide's variance (1: the image is standardized). On the 14 validation frames a first
 # implementation (windows replicating the image's edge) gave Census+GCP 4.77, 4.76, 4.77 %
@@ -339,7 +339,7 @@ class StripFilter:
     """
     Correlates and filters the CNN descriptors of an image as its strips of rows come.
 
-    `add` takes each strip's raw descriptors (`cnn_correlation`'s bits), writes its rows of
+    `add` takes each strip's raw descriptors (`cnn.correlation`'s bits), writes its rows of
     cof_dr and the outputs of every row whose rows below have come (all rows at the last
     strip) into cof_c (raw), cof_d, (H, W) each. `scratch`: a float32 array of at least
     `scratch_size` values for what it holds between strips (allocated if None; a caller

@@ -6,17 +6,17 @@ calibration of its unfiltered confidence. Beside it, `<name>.confidence.json` (t
 file, written by `tools.fit_confidence`) holds, under `calibration_key(r)`, the calibration
 of the confidence guided-filtered with radius r, under `method_key(cfg)`, the fit of the
 disparity confidence of each method, and under INT8_KEY the int8 CNN's activation ranges
-(`cnn_int8`). Every kind of entry is read here, and only here.
+(`cnn.int8`). Every kind of entry is read here, and only here.
 """
 import json
 from pathlib import Path
 
 import numpy as np
 
-from .config import StereoConfig
-from .disparity_confidence import CONFIDENCE_FEATURES, ConfidenceFit
+from ..config import StereoConfig
+from ..disparity_confidence import CONFIDENCE_FEATURES, ConfidenceFit
 
-DEFAULT_WEIGHTS = Path(__file__).parents[1] / 'weights' / 'gcp_cnn.pt'
+DEFAULT_WEIGHTS = Path(__file__).parents[2] / 'weights' / 'gcp_cnn.pt'
 CALIBRATION_KEY = 'cnn_filter_radius='  # + the radius: a calibration's key in the side file
 INT8_KEY = 'int8'  # the int8 CNN's activation ranges and steps in the side file
 
