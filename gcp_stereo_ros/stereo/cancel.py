@@ -1,5 +1,6 @@
 """Stopping a run from another thread: a flag the kernels read once per row."""
 import numpy as np
+import numpy.typing as npt
 
 
 class Cancelled(Exception):
@@ -15,24 +16,24 @@ class CancelFlag:
     calls `check`. A flag stays set until `clear`.
     """
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.array = np.zeros(1, np.uint8)
 
-    def set(self):  # noqa: A003 (the threading.Event name)
+    def set(self) -> None:  # noqa: A003 (the threading.Event name)
         self.array[0] = 1
 
-    def clear(self):
+    def clear(self) -> None:
         self.array[0] = 0
 
-    def is_set(self):
+    def is_set(self) -> bool:
         return bool(self.array[0])
 
-    def check(self):
+    def check(self) -> None:
         """Raise Cancelled if the flag is set."""
         if self.array[0]:
             raise Cancelled('cancelled')
 
 
-def flag_array(cancel):
+def flag_array(cancel: CancelFlag | None) -> npt.NDArray[np.uint8]:
     """Return the array the kernels read for `cancel`, a CancelFlag or None (never set)."""
     return (cancel or CancelFlag()).array

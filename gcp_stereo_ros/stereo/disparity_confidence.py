@@ -17,9 +17,12 @@ The four confidences of the package, one name each:
   `StereoPipeline(..., cnn=...)` reuses;
 - `ConfidenceFit` (here): the fitted map from features to the disparity confidence.
 """
+from collections.abc import Iterable
+
 import cv2
 from numba import njit, prange
 import numpy as np
+import numpy.typing as npt
 
 CONFIDENCE_PX = 3  # the disparity confidence is P(|d - truth| <= CONFIDENCE_PX)
 CONFIDENCE_FEATURES = (
@@ -43,7 +46,8 @@ def margin(s_best: np.ndarray, s_second: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(m), np.clip(m, 0.0, 1.0), 1.0).astype(np.float32)
 
 
-def features(disp, consistent, m, cof_c, cof_d, gcp) -> np.ndarray:
+def features(disp: np.ndarray, consistent: np.ndarray, m: np.ndarray, cof_c: np.ndarray | None,
+             cof_d: np.ndarray | None, gcp: np.ndarray | None) -> npt.NDArray[np.float32]:
     """
     Return the features of each pixel, float32 (len(CONFIDENCE_FEATURES), H, W).
 
@@ -71,7 +75,7 @@ def features(disp, consistent, m, cof_c, cof_d, gcp) -> np.ndarray:
 class ConfidenceFit:
     """A fitted disparity confidence: logistic weights of the features, isotonic knots."""
 
-    def __init__(self, coef, knots):
+    def __init__(self, coef: npt.ArrayLike, knots: Iterable[npt.ArrayLike]) -> None:
         """Take the intercept and one weight per feature, and the knots (score, P)."""
         self.coef = np.asarray(coef, np.float64)
         self.knots = tuple(np.asarray(k, np.float64) for k in knots)
@@ -90,7 +94,7 @@ class ConfidenceFit:
 
 
 @njit(parallel=True, cache=True)
-def _interp(x, xp, fp):
+def _interp(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> npt.NDArray[np.float32]:
     """Return np.interp(x, xp, fp) as float32, the rows (first axis) of `x` in parallel."""
     out = np.empty(x.shape, np.float32)
     for row in prange(x.shape[0]):

@@ -1,12 +1,16 @@
 """Ground control points (GCPs) and the paper's cost refinement."""
+from typing import Any
+
 from numba import njit, prange
 import numpy as np
+import numpy.typing as npt
 
 from .cost import UINT16_MAX
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _refine(cost, gcp, cof_d, c_hi, c_low):
+def _refine(cost: np.ndarray, gcp: np.ndarray, cof_d: np.ndarray, c_hi: Any, c_low: Any
+            ) -> None:
     h, w, nd = cost.shape
     for y in prange(h):
         for x in range(w):
@@ -18,7 +22,8 @@ def _refine(cost, gcp, cof_d, c_hi, c_low):
                 cost[y, x, :] = c_hi
 
 
-def right_view_agrees(disp, disp_right, tol):
+def right_view_agrees(disp: np.ndarray, disp_right: np.ndarray, tol: float
+                      ) -> npt.NDArray[np.bool_]:
     """
     Return where the right view confirms the left disparity d = `disp` (H, W).
 
@@ -31,7 +36,8 @@ def right_view_agrees(disp, disp_right, tol):
     return (xr >= 0) & (np.abs(back - disp) <= tol)
 
 
-def select(cof_c, cof_d, cof_dr, theta, lr_check=False, plain=None):
+def select(cof_c: np.ndarray, cof_d: np.ndarray, cof_dr: np.ndarray, theta: float,
+           lr_check: bool = False, plain: np.ndarray | None = None) -> npt.NDArray[np.bool_]:
     """
     Return the GCP mask: pixels whose CNN confidence `cof_c` exceeds `theta`.
 
@@ -52,7 +58,8 @@ def select(cof_c, cof_d, cof_dr, theta, lr_check=False, plain=None):
     return gcp
 
 
-def refine(cost, gcp, cof_d, c_hi, c_low):
+def refine(cost: np.ndarray, gcp: np.ndarray, cof_d: np.ndarray, c_hi: float, c_low: float
+           ) -> np.ndarray:
     """
     Refine a cost volume in place, as the paper does, and return it.
 
@@ -69,7 +76,7 @@ def refine(cost, gcp, cof_d, c_hi, c_low):
     return cost
 
 
-def levels(dtype, c_hi, c_low):
+def levels(dtype: np.dtype, c_hi: float, c_low: float) -> tuple[np.generic, np.generic]:
     """
     Return C_hi and C_low as `dtype` scalars.
 
@@ -83,7 +90,8 @@ def levels(dtype, c_hi, c_low):
     return dtype.type(c_hi), dtype.type(c_low)
 
 
-def gcp_quality(gcp, cof_d, gt, valid):
+def gcp_quality(gcp: np.ndarray, cof_d: np.ndarray, gt: np.ndarray, valid: np.ndarray
+                ) -> tuple[float, float]:
     """
     Return (density, accuracy) in percent.
 

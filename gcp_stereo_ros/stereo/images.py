@@ -1,12 +1,13 @@
 """Input checks, intensity conversions and resampling shared by every stage."""
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 # ITU-R BT.601 luma, as cv2.cvtColor and Pillow's convert('L') use.
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
-def to_gray(image, name='image'):
+def to_gray(image: npt.ArrayLike, name: str = 'image') -> npt.NDArray[np.float32]:
     """
     Return `image` as a float32 (H, W) gray array.
 
@@ -33,7 +34,8 @@ def to_gray(image, name='image'):
     return a
 
 
-def gray_pair(left, right):
+def gray_pair(left: npt.ArrayLike, right: npt.ArrayLike
+              ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """Both images as float32 gray; raises ValueError unless they have the same size."""
     lg, rg = to_gray(left, 'left image'), to_gray(right, 'right image')
     if lg.shape != rg.shape:
@@ -43,20 +45,20 @@ def gray_pair(left, right):
     return lg, rg
 
 
-def mean_std(gray):
+def mean_std(gray: npt.ArrayLike) -> tuple[float, float]:
     """Return the mean and the std (1 for a flat image) that `standardize` uses."""
     g = np.asarray(gray, dtype=np.float32)
     std = float(g.std())
     return float(g.mean()), (std if std > 1e-6 else 1.0)
 
 
-def standardize(gray):
+def standardize(gray: npt.ArrayLike) -> np.ndarray:
     """Per-image normalization of the paper: subtract the mean, divide by the std."""
     mean, std = mean_std(gray)
     return (np.asarray(gray, dtype=np.float32) - mean) / std
 
 
-def bin_area(gray, factor):
+def bin_area(gray: np.ndarray, factor: int) -> np.ndarray:
     """
     Return the mean of each `factor` x `factor` block of a float32 gray image.
 
@@ -69,7 +71,7 @@ def bin_area(gray, factor):
     return cv2.resize(gray[:h * factor, :w * factor], (w, h), interpolation=cv2.INTER_AREA)
 
 
-def upsample(a, factor, shape):
+def upsample(a: np.ndarray, factor: int, shape: tuple[int, ...]) -> np.ndarray:
     """
     Return `a` blown up to `shape` (H, W): each pixel repeated `factor` x `factor` times.
 
@@ -80,11 +82,11 @@ def upsample(a, factor, shape):
     return np.take(np.take(a, rows, axis=0), cols, axis=1)
 
 
-def subsample(a, factor, shape):
+def subsample(a: npt.ArrayLike, factor: int, shape: tuple[int, ...]) -> np.ndarray:
     """Return the (H, W) grid `shape` of which `a` is the `upsample` by `factor` (its inverse)."""
     return np.asarray(a)[:shape[0] * factor:factor, :shape[1] * factor:factor]
 
 
-def mask_image(mask):
+def mask_image(mask: npt.ArrayLike) -> npt.NDArray[np.uint8]:
     """Boolean mask as a uint8 0/255 image (mono8, PNG)."""
     return np.asarray(mask, dtype=bool).astype(np.uint8) * 255

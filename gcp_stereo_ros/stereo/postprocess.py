@@ -32,14 +32,21 @@ matching grid, 1 / f of the images, before the result is blown up to full size: 
 and disparities the parameters give in full-size pixels are scaled to it (a speckle of
 `speckle_size` / f^2 matching pixels, `speckle_range` / f).
 """
+from collections.abc import Callable
+
 import cv2
 from numba import njit
 import numpy as np
+import numpy.typing as npt
+
+from .config import StereoConfig
 
 SPECKLE_SCALE = 16  # fixed-point steps per pixel of filterSpeckles' int16 disparity (OpenCV's)
+# The summed SGM costs of pixels (rows, cols) at disparities (n, k): `background_fits`.
+Costs = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
-def valid_window(cfg, shape):
+def valid_window(cfg: StereoConfig, shape: tuple[int, int]) -> tuple[int, int, int, int]:
     """
     Return the region (x0, y0, x1, y1) where the matching window stays inside the image.
 
@@ -48,14 +55,14 @@ def valid_window(cfg, shape):
     return inside(cfg.window // 2 * cfg.downsample, shape)
 
 
-def inside(border, shape):
+def inside(border: int, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
     """Return the region (x0, y0, x1, y1) of `shape` (H, W) at least `border` px from its edges."""
     h, w = shape
     x0, y0 = min(border, w), min(border, h)
     return x0, y0, max(w - border, x0), max(h - border, y0)
 
 
-def cut_short(disp, cfg):
+def cut_short(disp: np.ndarray, cfg: StereoConfig) -> npt.NDArray[np.bool_]:
     """
     Return where the search was cut short (see the module's docstring), bool (h, w).
 
@@ -70,7 +77,8 @@ def cut_short(disp, cfg):
     return out
 
 
-def depth_limits(cfg, camera):
+def depth_limits(cfg: StereoConfig, camera: tuple[float, float] | None
+                 ) -> tuple[float, float] | None:
     """
     Return (lowest, highest) disparity of depths within [min_depth, max_depth], or None.
 
@@ -85,7 +93,7 @@ def depth_limits(cfg, camera):
     return low, high
 
 
-def speckles(disp, size, max_diff):
+def speckles(disp: np.ndarray, size: float, max_diff: float) -> npt.NDArray[np.bool_]:
     """Return a mask of the pixels of `disp` that lie in speckles, as the module says."""
     invalid = -SPECKLE_SCALE
     fixed = np.where(np.isfinite(disp), np.rint(disp * SPECKLE_SCALE), invalid)
@@ -95,7 +103,7 @@ def speckles(disp, size, max_diff):
 
 
 @njit(cache=True)
-def fill_rows(d):
+def fill_rows(d: np.ndarray) -> None:
     """
     Fill each row's non-finite pixels of `d` in place, as the KITTI devkit's interpolation does.
 
@@ -115,7 +123,7 @@ def fill_rows(d):
             d[y, last + 1:] = d[y, last]
 
 
-def backgrounds(disp, low):
+def backgrounds(disp: np.ndarray, low: np.ndarray) -> npt.NDArray[np.float32]:
     """
     Return each `low` pixel's background disparity, float32 (h, w), NaN elsewhere.
 
@@ -130,7 +138,8 @@ def backgrounds(disp, low):
 
 
 @njit(cache=True)
-def _lookups(disp, b, top):
+def _lookups(disp: np.ndarray, b: np.ndarray, top: int
+             ) -> tuple[np.ndarray, np.ndarray, npt.NDArray[np.intp]]:
     """
     Return rows, cols (n,) and disparities (n, 4) of the pixels with a background `b`.
 
@@ -138,7 +147,7 @@ def _lookups(disp, b, top):
     each clipped to [0, top].
     """
     rows, cols = np.nonzero(np.isfinite(b))
-    out = np.empty((len(rows), 4), np.intp)
+    out: np.ndarray = np.empty((len(rows), 4), np.intp)
     for i in range(len(rows)):
         at = np.intp(np.rint(b[rows[i], cols[i]]))
         for j in range(3):
@@ -147,7 +156,8 @@ def _lookups(disp, b, top):
     return rows, cols, out
 
 
-def background_fits(disp, low, costs, cfg):
+def background_fits(disp: np.ndarray, low: np.ndarray, costs: Costs, cfg: StereoConfig
+                    ) -> npt.NDArray[np.bool_]:
     """
     Return where a `low` pixel's background fits within cfg.background_ratio, bool (h, w).
 
@@ -165,8 +175,10 @@ def background_fits(disp, low, costs, cfg):
     return fits
 
 
-def invalidate(disp, consistent, m, cfg, camera=None, disparity_confidence=None, costs=None,
-               plain=None):
+def invalidate(disp: np.ndarray, consistent: np.ndarray, m: np.ndarray, cfg: StereoConfig,
+               camera: tuple[float, float] | None = None,
+               disparity_confidence: np.ndarray | None = None, costs: Costs | None = None,
+               plain: np.ndarray | None = None) -> np.ndarray:
     """
     Set NaN in `disp` (float32, in place) where cfg's tests fail; return `disp`.
 

@@ -18,19 +18,23 @@ Two number types, same code: float32, and uint16 for integer costs (Census dista
 integer penalties). uint16 is exact and halves the memory traffic, which bounds the sweeps;
 it needs paths * (max C + P2) <= 65535, since L_r <= C + P2 and S sums `paths` of them.
 """
+from collections.abc import Callable
+from typing import Any
+
 from llvmlite import ir
 import numba
 from numba import njit, prange, types
 from numba.extending import intrinsic, overload
 import numpy as np
+import numpy.typing as npt
 
-from .cancel import flag_array
+from .cancel import CancelFlag, flag_array
 from .cost import output_array, UINT16_MAX
 
 PATHS = (4, 8, 16)
 
 
-def directions(paths):
+def directions(paths: int) -> list[tuple[int, int]]:
     """
     Return the (dx, dy) path directions with dy >= 0.
 
@@ -47,7 +51,7 @@ def directions(paths):
     return dirs
 
 
-def summation_order(paths):
+def summation_order(paths: int) -> list[tuple[int, int]]:
     """
     Return all `paths` directions (dx, dy), in the order S adds up their L_r in each cell.
 
@@ -58,12 +62,12 @@ def summation_order(paths):
     return [(1, 0), (-1, 0)] + above + [(-dx, -dy) for dx, dy in above]
 
 
-def path_sum_bound(paths, max_cost, p2):
+def path_sum_bound(paths: int, max_cost: float, p2: float) -> float:
     """Return the largest value S can take: each path's L_r <= C + P2."""
     return paths * (max_cost + p2)
 
 
-def _keys(v):
+def _keys(v: np.ndarray) -> np.ndarray:
     """
     Return v as an array that orders like it and whose min reduction vectorizes.
 
@@ -73,15 +77,19 @@ def _keys(v):
     raise NotImplementedError('for numba-compiled code only')
 
 
+# numba compares the parameters of an overload with those of the function it returns,
+# annotations included: the lambdas have none, so neither have the overloads' parameters.
 @overload(_keys, inline='always')
-def _keys_impl(v):
+def _keys_impl(v) -> Callable[[np.ndarray], np.ndarray]:  # type: ignore[no-untyped-def]
     if v.dtype == types.float32:
         return lambda v: v.view(np.int32)
     return lambda v: v
 
 
+# numba's stub types a call of an intrinsic with the typing context as its first argument:
+# the kernels' calls of these two ignore call-arg.
 @intrinsic
-def _key(typingctx, v):
+def _key(typingctx: Any, v: Any) -> tuple[Any, Callable[..., Any]]:
     """Return the key (see `_keys`) of one value: its int32 bits for float32, else v."""
     if v == types.float32:
         return types.int32(v), lambda context, builder, sig, args: builder.bitcast(
@@ -90,42 +98,42 @@ def _key(typingctx, v):
 
 
 @intrinsic
-def _key_value(typingctx, k):
+def _key_value(typingctx: Any, k: Any) -> tuple[Any, Callable[..., Any]]:
     """Return the value of a key (see `_key`) as float32: a float32's int32 bits, else k."""
-    def bits(context, builder, sig, args):
+    def bits(context: Any, builder: Any, sig: Any, args: Any) -> Any:
         return builder.bitcast(args[0], ir.FloatType())
 
-    def count(context, builder, sig, args):
+    def count(context: Any, builder: Any, sig: Any, args: Any) -> Any:
         return builder.uitofp(args[0], ir.FloatType())
 
     return types.float32(k), bits if k == types.int32 else count
 
 
-def _top_key(total):
+def _top_key(total: np.ndarray) -> np.integer:
     """Return a key (see `_keys`) no value of the array `total` exceeds: inf's or 65535."""
     raise NotImplementedError('for numba-compiled code only')
 
 
 @overload(_top_key, inline='always')
-def _top_key_impl(total):
+def _top_key_impl(total) -> Callable[[np.ndarray], np.integer]:  # type: ignore[no-untyped-def]
     if total.dtype == types.float32:
         return lambda total: np.int32(0x7F800000)  # the bits of +inf
     return lambda total: np.uint16(UINT16_MAX)  # uint16 volumes, the only other type
 
 
-def _as(like, x):
+def _as(like: np.ndarray, x: Any) -> Any:
     """Return x converted to the element type of the array `like`."""
     raise NotImplementedError('for numba-compiled code only')
 
 
 @overload(_as, inline='always')
-def _as_impl(like, x):
+def _as_impl(like, x) -> Callable[[np.ndarray, Any], Any]:  # type: ignore[no-untyped-def]
     dtype = like.dtype
     return lambda like, x: dtype(x)
 
 
 @njit(inline='always', fastmath=True)
-def _min_key(v):
+def _min_key(v: np.ndarray) -> Any:
     """Return the key (see `_keys`) of min(v), v >= 0."""
     keys = _keys(v)
     m = keys[0]
@@ -136,9 +144,10 @@ def _min_key(v):
 
 
 @njit(inline='always', fastmath=True)
-def _path_start(cost, y, x, lr, min_keys, cur, total, add):
+def _path_start(cost: np.ndarray, y: int, x: int, lr: np.ndarray, min_keys: np.ndarray, cur: int,
+                total: np.ndarray, add: bool) -> None:
     """Set row `cur` of lr to L_r(p, .) = C(p, .) (p - r outside the image); if add, S += it."""
-    m = _key(cost[y, x, 0])
+    m: Any = _key(cost[y, x, 0])  # type: ignore[call-arg]
     for d in range(cost.shape[2]):
         v = cost[y, x, d]
         lr[cur, d + 1] = v
@@ -149,7 +158,9 @@ def _path_start(cost, y, x, lr, min_keys, cur, total, add):
 
 
 @njit(inline='always', fastmath=True)
-def _path_step(cost, y, x, lr, mins, min_keys, prev, cur, p1, p2, total, add):
+def _path_step(cost: np.ndarray, y: int, x: int, lr: np.ndarray, mins: np.ndarray,
+               min_keys: np.ndarray, prev: int, cur: int, p1: Any, p2: Any, total: np.ndarray,
+               add: bool) -> None:
     """
     Set row `cur` of lr to L_r(p, .) from C(p, .) = cost[y, x] and row `prev`, L_r(p - r, .).
 
@@ -161,7 +172,7 @@ def _path_step(cost, y, x, lr, mins, min_keys, prev, cur, p1, p2, total, add):
     """
     prev_min = mins[prev]
     jump = _as(lr, prev_min + p2)
-    m = _key(lr[prev, 0])  # the sentinel, above every L_r
+    m: Any = _key(lr[prev, 0])  # type: ignore[call-arg]  # the sentinel, above every L_r
     for d in range(cost.shape[2]):
         step = _as(lr, min(lr[prev, d], lr[prev, d + 2]) + p1)
         v = _as(lr, cost[y, x, d] + min(min(lr[prev, d + 1], step), jump) - prev_min)
@@ -172,7 +183,7 @@ def _path_step(cost, y, x, lr, mins, min_keys, prev, cur, p1, p2, total, add):
     min_keys[cur] = m
 
 
-def _sentinel(dtype, p1):
+def _sentinel(dtype: np.dtype, p1: Any) -> np.generic:
     """
     Return the value of the cells at d = -1 and d = D of each path cost row.
 
@@ -184,7 +195,8 @@ def _sentinel(dtype, p1):
 
 
 @njit(inline='always', fastmath=True)
-def _horizontal_row(cost, y, p1, p2, lr, mins, min_keys, row0, backward, total):
+def _horizontal_row(cost: np.ndarray, y: int, p1: Any, p2: Any, lr: np.ndarray, mins: np.ndarray,
+                    min_keys: np.ndarray, row0: int, backward: bool, total: np.ndarray) -> None:
     """Set rows row0 + x of lr to L_r(x, .) along row y, r = (-1, 0) if backward else (1, 0)."""
     w = cost.shape[1]
     x0 = w - 1 if backward else 0
@@ -196,7 +208,8 @@ def _horizontal_row(cost, y, p1, p2, lr, mins, min_keys, row0, backward, total):
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def _sweep(cost, p1, p2, total, dirs, down, bands, sentinel, cancel):
+def _sweep(cost: np.ndarray, p1: Any, p2: Any, total: np.ndarray, dirs: np.ndarray, down: bool,
+           bands: np.ndarray, sentinel: Any, cancel: np.ndarray) -> None:
     """
     Accumulate L_r into total for each r in dirs; dy > 0 counts rows back in sweep order.
 
@@ -241,7 +254,7 @@ def _sweep(cost, p1, p2, total, dirs, down, bands, sentinel, cancel):
                         _path_start(cost, y, x, lr, min_keys, cur, total, True)
 
 
-def _bands(w, ndirs, horizontal, tasks):
+def _bands(w: int, ndirs: int, horizontal: bool, tasks: int) -> npt.NDArray[np.int64]:
     """
     Return the column bands (a boundary array) of `tasks` >= 2 tasks with equal work per row.
 
@@ -256,7 +269,7 @@ def _bands(w, ndirs, horizontal, tasks):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _scan(cost):
+def _scan(cost: np.ndarray) -> tuple[int, Any]:
     """Return (number of cells that are negative, NaN or infinite, largest value)."""
     flat = cost.reshape(-1)
     n = 0
@@ -269,7 +282,7 @@ def _scan(cost):
     return n, top
 
 
-def as_volume(a):
+def as_volume(a: np.ndarray) -> np.ndarray:
     """
     Return `a` as a C-contiguous volume SGM takes.
 
@@ -278,7 +291,8 @@ def as_volume(a):
     return np.ascontiguousarray(a, dtype=np.uint16 if a.dtype == np.uint16 else np.float32)
 
 
-def penalties(dtype, p1, p2, paths, top):
+def penalties(dtype: np.dtype, p1: float, p2: float, paths: int, top: float
+              ) -> tuple[Any, Any]:
     """
     Return P1 and P2 as `dtype` scalars for a volume whose largest cost is `top`.
 
@@ -300,7 +314,8 @@ def penalties(dtype, p1, p2, paths, top):
     return dtype.type(p1), dtype.type(p2)
 
 
-def aggregate(cost, p1, p2, paths=16, out=None, cancel=None):
+def aggregate(cost: npt.ArrayLike, p1: float, p2: float, paths: int = 16,
+              out: np.ndarray | None = None, cancel: CancelFlag | None = None) -> np.ndarray:
     """
     Return the summed path costs S (H, W, D) of a cost volume (see module doc).
 
@@ -336,7 +351,7 @@ def aggregate(cost, p1, p2, paths=16, out=None, cancel=None):
 
 
 @njit(inline='always')
-def parabola_offset(lo, mid, hi):
+def parabola_offset(lo: float, mid: float, hi: float) -> float:
     """
     Return the sub-pixel offset of a parabola's minimum through S at d - 1, d, d + 1.
 
@@ -349,7 +364,9 @@ def parabola_offset(lo, mid, hi):
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=True)
-def _wta(total, subpixel, lr_tol, shift, out, consistent, s_best, s_second, cancel):
+def _wta(total: np.ndarray, subpixel: bool, lr_tol: int, shift: int, out: np.ndarray,
+         consistent: np.ndarray, s_best: np.ndarray, s_second: np.ndarray, cancel: np.ndarray
+         ) -> None:
     h, w, nd = total.shape
     low = np.int64((1 << shift) - 1)
     for y in prange(h):
@@ -363,12 +380,14 @@ def _wta(total, subpixel, lr_tol, shift, out, consistent, s_best, s_second, canc
         right = np.empty(w if lr_tol >= 0 else 0, np.int64)
         for x in range(w if lr_tol >= 0 else 0):
             j = np.uint64(w - 1 - x)  # unsigned: no wraparound test, so the run vectorizes
-            right[j] = np.int64(_key(total[y, x, 0])) << shift  # d = 0: right pixel x's first
+            # d = 0: right pixel x's first
+            right[j] = np.int64(_key(total[y, x, 0])) << shift  # type: ignore[call-arg]
             for d in range(1, min(nd, x + 1)):
                 right[j + np.uint64(d)] = min(right[j + np.uint64(d)],
                                               (np.int64(_key(total[y, x, d])) << shift) | d)
         for x in range(w):
-            m = _key(total[y, x, 0])  # S >= 0: the first d whose key equals the minimum's
+            # S >= 0: the first d whose key equals the minimum's
+            m: Any = _key(total[y, x, 0])  # type: ignore[call-arg]
             for d in range(1, nd):
                 m = min(m, _key(total[y, x, d]))
             best = 0
@@ -392,7 +411,9 @@ def _wta(total, subpixel, lr_tol, shift, out, consistent, s_best, s_second, canc
             out[y, x] = best + offset
 
 
-def winners(total, subpixel=False, lr_check=False, cancel=None):
+def winners(total: npt.ArrayLike, subpixel: bool = False, lr_check: bool = False,
+            cancel: CancelFlag | None = None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
     Return (disparity, consistent, s_best, s_second): the winner-takes-all of summed costs S.
 
@@ -417,7 +438,8 @@ def winners(total, subpixel=False, lr_check=False, cancel=None):
 
 
 @njit(cache=True, nogil=True)
-def costs_at(total, rows, cols, disparities):
+def costs_at(total: np.ndarray, rows: np.ndarray, cols: np.ndarray, disparities: np.ndarray
+             ) -> np.ndarray:
     """Return total[rows[i], cols[i], disparities[i, j]], (n, k) of total's type."""
     n, k = disparities.shape
     out = np.empty((n, k), total.dtype)
