@@ -9,6 +9,8 @@ of each row from `_two_columns`, so they give the same bits. The descriptors com
 `bits`: (2, rows, W, C) float32 bit patterns, as uint32 (`shift` 0) or as the upper halves
 of bfloat16 values in uint16 (`shift` 16), so both widen exactly.
 """
+from typing import Any
+
 from numba import int32, njit, prange
 import numpy as np
 
@@ -16,7 +18,7 @@ EPS = 1e-8
 
 
 @njit(inline='always', fastmath=True)
-def _unit_rows(bits, shift, y):
+def _unit_rows(bits: np.ndarray, shift: int, y: int) -> np.ndarray:
     """Return rows y of both descriptor images as float32 (2, W, C), L2-normalized."""
     _, _, w, c = bits.shape
     out = np.empty((2, w, c), np.float32)
@@ -34,7 +36,7 @@ def _unit_rows(bits, shift, y):
 
 
 @njit(inline='always', fastmath=True)
-def _two_columns(f, x, out, i):
+def _two_columns(f: np.ndarray, x: int, out: np.ndarray, i: int) -> None:
     """
     Write Vol(x, d) into out[i, d] and Vol(x + 1, d) into out[i + 1, d], d < D.
 
@@ -65,13 +67,13 @@ def _two_columns(f, x, out, i):
 
 
 @njit(inline='always', fastmath=True)
-def order(bits):
+def order(bits: Any) -> Any:
     """Return an int32 that orders as the float32 whose bits (as int32) are `bits`."""
     return int32(bits ^ int32(int32(bits >> int32(31)) & int32(0x7fffffff)))
 
 
 @njit(inline='always', fastmath=True)
-def first_argmax(keys, i, n):
+def first_argmax(keys: np.ndarray, i: int, n: int) -> Any:
     """
     Return the first argmax over d < n of the float32 values whose bits keys[i] are.
 
@@ -88,7 +90,8 @@ def first_argmax(keys, i, n):
 
 
 @njit(inline='always', fastmath=True)
-def _right_view(vals, i, n, x, right_best, right_arg):
+def _right_view(vals: np.ndarray, i: int, n: int, x: int, right_best: np.ndarray,
+                right_arg: np.ndarray) -> None:
     """
     Fold Vol(y, x, d) = vals[i, d], d < n, into the right view's first max and argmax.
 
@@ -103,7 +106,8 @@ def _right_view(vals, i, n, x, right_best, right_arg):
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def best_match(bits, shift, max_disp, cof_c, cof_d, cof_dr):
+def best_match(bits: np.ndarray, shift: int, max_disp: int, cof_c: np.ndarray, cof_d: np.ndarray,
+               cof_dr: np.ndarray) -> None:
     """
     Stream max / first argmax over d of Vol(y, x, d) into (rows, W) cof_c and cof_d.
 
@@ -130,7 +134,7 @@ def best_match(bits, shift, max_disp, cof_c, cof_d, cof_dr):
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def volume(bits, shift, vol, first, cof_dr):
+def volume(bits: np.ndarray, shift: int, vol: np.ndarray, first: int, cof_dr: np.ndarray) -> None:
     """
     Write the volume's rows into `vol` (N, W, D), row y at (first + y) % N, and cof_dr.
 

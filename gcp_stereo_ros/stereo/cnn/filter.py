@@ -32,6 +32,7 @@ disparities tie within that).
 """
 from numba import njit, prange
 import numpy as np
+import numpy.typing as npt
 
 from .correlation import first_argmax, volume
 
@@ -49,13 +50,14 @@ BAND_ROWS = 16
 BLOCK_COLS = 128
 
 
-def halo(radius):
+def halo(radius: int) -> int:
     """Return the rows of the volume above and below a strip that its filter reads: 2 r."""
     return 2 * radius
 
 
 @njit(inline='always', fastmath=True)
-def _add_row(src1, src2, weight, y, sign, col1, col2):
+def _add_row(src1: np.ndarray, src2: np.ndarray, weight: np.ndarray, y: int, sign: np.float32,
+             col1: np.ndarray, col2: np.ndarray) -> None:
     """col1 += sign src1[y]; col2 += sign weight[y] src2[y] (src (rows, W, k), col (W, k))."""
     for x in range(col1.shape[0]):
         g = sign * weight[y, x]
@@ -65,7 +67,8 @@ def _add_row(src1, src2, weight, y, sign, col1, col2):
 
 
 @njit(inline='always', fastmath=True)
-def _slide(n, radius, y, first_row, src1, src2, weight, col1, col2):
+def _slide(n: int, radius: int, y: int, first_row: bool, src1: np.ndarray, src2: np.ndarray,
+           weight: np.ndarray, col1: np.ndarray, col2: np.ndarray) -> int:
     """
     Make col1, col2 the column sums of src1, weight src2 over the rows |y' - y| <= radius.
 
@@ -87,7 +90,7 @@ def _slide(n, radius, y, first_row, src1, src2, weight, col1, col2):
 
 
 @njit(inline='always', fastmath=True)
-def _across(col, x, radius, acc):
+def _across(col: np.ndarray, x: int, radius: int, acc: np.ndarray) -> int:
     """Slide the row sum acc of col's columns |x' - x| <= radius from x - 1 to x."""
     w = col.shape[0]
     if x == 0:
@@ -105,7 +108,8 @@ def _across(col, x, radius, acc):
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def box_means(src, weight, radius, means, weighted, blocks):
+def box_means(src: np.ndarray, weight: np.ndarray, radius: int, means: np.ndarray,
+              weighted: np.ndarray, blocks: int) -> None:
     """
     Write the window means of src (rows, W, k) and of weight (rows, W) src into the two outs.
 
@@ -126,7 +130,8 @@ def box_means(src, weight, radius, means, weighted, blocks):
                     weighted[y, x, c] = acc2[c] * inv
 
 
-def guide_stats(guide, radius):
+def guide_stats(guide: np.ndarray, radius: int
+                ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """Return the window means of I and its variance, float32 (H, W) each, of I (float32)."""
     mean, square = (np.empty(guide.shape + (1,), np.float32) for _ in range(2))
     box_means(guide[..., None], guide, radius, mean, square, _blocks(guide.shape[0]))
@@ -134,7 +139,7 @@ def guide_stats(guide, radius):
     return mean, np.maximum(square[..., 0] - mean * mean, 0)
 
 
-def _blocks(rows):
+def _blocks(rows: int) -> int:
     """
     Return the bands of `rows` rows `box_means` slides its sums down, BAND_ROWS each.
 
@@ -146,7 +151,8 @@ def _blocks(rows):
 
 
 @njit(inline='always', fastmath=True)
-def _enter(ring, q1, q2, col, sums, s, lx, y, radius, guide, x):
+def _enter(ring: np.ndarray, q1: int, q2: int, col: int, sums: np.ndarray, s: int, lx: int, y: int,
+           radius: int, guide: np.ndarray | None, x: int) -> None:
     """
     Slide the column sums sums[s], sums[s + 1] at block column lx down to row y.
 
@@ -179,7 +185,8 @@ def _enter(ring, q1, q2, col, sums, s, lx, y, radius, guide, x):
 
 
 @njit(inline='always', fastmath=True)
-def _leave(ring, q1, q2, col, sums, s, lx, y, guide, x):
+def _leave(ring: np.ndarray, q1: int, q2: int, col: int, sums: np.ndarray, s: int, lx: int, y: int,
+           guide: np.ndarray | None, x: int) -> None:
     """Remove row y of ring[q1], ring[q2] (as `_enter` adds it) from sums[s], sums[s + 1]."""
     slot = y % ring.shape[1]
     g = guide[y, x] if guide is not None else np.float32(1.0)
@@ -189,7 +196,8 @@ def _leave(ring, q1, q2, col, sums, s, lx, y, guide, x):
 
 
 @njit(inline='always', fastmath=True)
-def _row_sums(sums, s, x, off, w, radius, first, acc):
+def _row_sums(sums: np.ndarray, s: int, x: int, off: int, w: int, radius: int, first: bool,
+              acc: np.ndarray) -> tuple[int, np.float32, int, np.float32, int]:
     """
     Return how to slide acc[0], acc[1] from the window of x - 1 to that of x.
 
@@ -214,7 +222,9 @@ def _row_sums(sums, s, x, off, w, radius, first, acc):
 
 
 @njit(inline='always', fastmath=True)
-def _coefficient_row(y, lo, hi, off, h, w, guide, mean_i, var_i, radius, held, sums, acc):
+def _coefficient_row(y: int, lo: int, hi: int, off: int, h: int, w: int, guide: np.ndarray,
+                     mean_i: np.ndarray, var_i: np.ndarray, radius: int, held: np.ndarray,
+                     sums: np.ndarray, acc: np.ndarray) -> None:
     """
     Hold a and b (the module's formula) of row y, columns lo..hi, and slide their sums.
 
@@ -247,7 +257,9 @@ def _coefficient_row(y, lo, hi, off, h, w, guide, mean_i, var_i, radius, held, s
 
 
 @njit(inline='always', fastmath=True)
-def _output_row(y, x0, x1, off, h, w, guide, radius, sums, acc, keys, cof_c, cof_d):
+def _output_row(y: int, x0: int, x1: int, off: int, h: int, w: int, guide: np.ndarray, radius: int,
+                sums: np.ndarray, acc: np.ndarray, keys: np.ndarray, cof_c: np.ndarray,
+                cof_d: np.ndarray) -> None:
     """
     Write max / first argmax over d <= x of Vol' of row y, columns x0..x1.
 
@@ -270,7 +282,9 @@ def _output_row(y, x0, x1, off, h, w, guide, radius, sums, acc, keys, cof_c, cof
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def _filter_rows(raw, y0, y1, guide, mean_i, var_i, radius, held, sums, acc, cof_c, cof_d):
+def _filter_rows(raw: np.ndarray, y0: int, y1: int, guide: np.ndarray, mean_i: np.ndarray,
+                 var_i: np.ndarray, radius: int, held: np.ndarray, sums: np.ndarray,
+                 acc: np.ndarray, cof_c: np.ndarray, cof_d: np.ndarray) -> None:
     """
     Filter the raw rows y0..y1 (row y in raw[y % its rows]), block by block of columns.
 
@@ -315,7 +329,8 @@ def _filter_rows(raw, y0, y1, guide, mean_i, var_i, radius, held, sums, acc, cof
                         cof_d)
 
 
-def _layout(width, max_disp, radius, strip_rows):
+def _layout(width: int, max_disp: int, radius: int, strip_rows: int
+            ) -> tuple[tuple[int, ...], ...]:
     """Return the shapes of a `StripFilter`'s accumulators, raw rows, coefficients and sums."""
     blocks, span = -(-width // BLOCK_COLS), BLOCK_COLS + 4 * radius
     padded = -(-max_disp // 16) * 16  # each accumulator on a 64-byte line
@@ -323,7 +338,7 @@ def _layout(width, max_disp, radius, strip_rows):
             (blocks, 2, 2 * radius + 2, span, max_disp), (blocks, 4, span, max_disp))
 
 
-def scratch_size(height, width, max_disp, radius, strip_rows):
+def scratch_size(height: int, width: int, max_disp: int, radius: int, strip_rows: int) -> int:
     """
     Return the float32 values a `StripFilter` holds.
 
@@ -346,8 +361,9 @@ class StripFilter:
     that keeps one between images spares the page faults of fresh memory).
     """
 
-    def __init__(self, guide, radius, max_disp, strip_rows, cof_c, cof_d, cof_dr,
-                 scratch=None):
+    def __init__(self, guide: np.ndarray, radius: int, max_disp: int, strip_rows: int,
+                 cof_c: np.ndarray, cof_d: np.ndarray, cof_dr: np.ndarray,
+                 scratch: np.ndarray | None = None) -> None:
         h, w = guide.shape
         self.guide = np.ascontiguousarray(guide, np.float32)
         self.radius, self.outputs = radius, (cof_c, cof_d, cof_dr)
@@ -361,7 +377,7 @@ class StripFilter:
             self.arrays.append(scratch[start:start + n].reshape(shape))
             start += n
 
-    def add(self, bits, shift, y0):
+    def add(self, bits: np.ndarray, shift: int, y0: int) -> None:
         """Correlate and filter rows y0.. (at most strip_rows), whose descriptors `bits` holds."""
         acc, raw, held, sums = self.arrays
         cof_c, cof_d, cof_dr = self.outputs

@@ -18,13 +18,18 @@ scaled activations / 255 (larger values clip). The ranges and clips are fitted b
 `weights.INT8_KEY`; `tools/fit_confidence.py --int8`). What it costs in accuracy and gains in
 speed: doc/method.md, "int8".
 """
+from collections.abc import Iterable
 import functools
 from pathlib import Path
+from typing import Any
 
 from numba import njit, prange
 import numpy as np
+import numpy.typing as npt
 import torch
 import torch.nn.functional as F
+
+from ..cancel import CancelFlag
 
 
 CHANNEL_PERCENTILE = 99.99  # a map's range r_k
@@ -34,14 +39,14 @@ SAMPLES = 5000  # activations sampled of each layer per frame for `fit`
 _ONE, _ZERO = [1, 1], [0, 0]
 
 
-def int8_available():
+def int8_available() -> bool:
     """Tell whether this torch has oneDNN's int8 convolution (x86 CPUs)."""
     return (torch.backends.mkldnn.is_available()
             and hasattr(torch.ops.onednn, 'qconv2d_pointwise'))
 
 
 @functools.cache
-def cpu_flags():
+def cpu_flags() -> frozenset[str]:
     """Return the CPU's feature flags as /proc/cpuinfo names them (empty where unreadable)."""
     try:
         return frozenset(Path('/proc/cpuinfo').read_text().split())
@@ -49,7 +54,7 @@ def cpu_flags():
         return frozenset()
 
 
-def int8_native():
+def int8_native() -> bool:
     """
     Tell whether int8 convolutions run at their fast rate here (what precision 'auto' uses).
 
@@ -67,7 +72,7 @@ class Int8Branch:
     (N, H, W, 64) bfloat16, as `cnn.descriptors` does in bf16.
     """
 
-    def __init__(self, net, ranges, clips):
+    def __init__(self, net: Any, ranges: Any, clips: Iterable[float]) -> None:
         ranges = torch.as_tensor(np.asarray(ranges, np.float32))
         clips = [float(c) for c in clips]
         convs = list(net.branch[::2])
@@ -95,7 +100,7 @@ class Int8Branch:
                                                     _ONE, 1, None)
             self.layers.append((packed, scale, torch.zeros(len(scale), dtype=torch.int64), b))
 
-    def __call__(self, x, cancel=None):
+    def __call__(self, x: torch.Tensor, cancel: CancelFlag | None = None) -> torch.Tensor:
         with torch.inference_mode():
             if cancel is not None:
                 cancel.check()
@@ -115,7 +120,7 @@ class Int8Branch:
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def _first_layer(x, w, b, out):
+def _first_layer(x: np.ndarray, w: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     """
     Write the first layer's uint8 output: trunc(clamp(conv(x, w) + b, 0, 255)).
 
@@ -138,7 +143,7 @@ def _first_layer(x, w, b, out):
                                                 np.float32(LEVELS)))
 
 
-def branch(net):
+def branch(net: Any) -> Int8Branch:
     """
     Return the net's Int8Branch, made once from its int8 entry (`cnn.load_net`'s `net.int8`).
 
@@ -163,7 +168,7 @@ def branch(net):
     return net.int8_branch
 
 
-def fit(net, inputs, names):
+def fit(net: Any, inputs: Iterable[torch.Tensor], names: Iterable[str]) -> dict[str, Any]:
     """
     Return the int8 entry {'ranges', 'clips', 'frames'} fitted on training frames.
 
@@ -180,7 +185,8 @@ def fit(net, inputs, names):
     return {'ranges': ranges.tolist(), 'clips': clips, 'frames': list(names)}
 
 
-def _samples(net, x, count, rng):
+def _samples(net: Any, x: torch.Tensor, count: int, rng: np.random.Generator
+             ) -> npt.NDArray[np.float32]:
     """Return (3, count, 64) float32: layers 1-3's float32 outputs at `count` random pixels."""
     out = []
     with torch.inference_mode():

@@ -32,16 +32,20 @@ give the raw cosine. The guided-filtered confidence (`cnn.filter`) has calibrati
 own, one per radius, in the fits file beside the weights (`tools/fit_confidence.py`).
 """
 import functools
+from pathlib import Path
 import time
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import torch
 from torch import nn
 import torch.nn.functional as F
 
 from . import filter as cnn_filter, int8 as cnn_int8
 from .correlation import best_match, EPS, volume as correlation_volume
-from .weights import cnn_calibrations, int8_entry, weights_path
+from .weights import cnn_calibrations, int8_entry, Knots, weights_path
+from ..cancel import CancelFlag
 from ..cost import check_max_disp
 from ..images import gray_pair, standardize
 
@@ -54,14 +58,14 @@ STRIP_ROWS = 64
 class GcpNet(nn.Module):
     """Shared branch of the Siamese net: 9x9 patch -> 64-d L2-normalized descriptor."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__()
         layers = []
         for i in range(4):
             layers += [nn.Conv2d(1 if i == 0 else FEATURES, FEATURES, 3), nn.ReLU()]
         self.branch = nn.Sequential(*layers)
 
-    def features(self, x):
+    def features(self, x: torch.Tensor) -> torch.Tensor:
         """
         Apply the valid (unpadded) convolution to (N, 1, H, W).
 
@@ -69,7 +73,7 @@ class GcpNet(nn.Module):
         """
         return F.normalize(self.branch(x).float(), dim=1, eps=EPS)
 
-    def forward(self, left_patches, right_patches):
+    def forward(self, left_patches: torch.Tensor, right_patches: torch.Tensor) -> torch.Tensor:
         """Confidences (N,) in [0, 1] of (N, 1, 9, 9) left/right patch pairs."""
         for name, p in (('left_patches', left_patches), ('right_patches', right_patches)):
             if p.ndim != 4 or tuple(p.shape[1:]) != (1, PATCH, PATCH):
@@ -78,7 +82,7 @@ class GcpNet(nn.Module):
         return (self.features(left_patches) * self.features(right_patches)).sum(dim=1).flatten()
 
 
-def load_net(path=None, device='cpu'):
+def load_net(path: str | Path | None = None, device: str | torch.device = 'cpu') -> GcpNet:
     """
     Return a GcpNet in eval mode with the weights at `path` (default: the shipped weights).
 
@@ -109,7 +113,7 @@ def load_net(path=None, device='cpu'):
     return net.to(device).eval()
 
 
-def calibration(net, radius):
+def calibration(net: GcpNet, radius: int) -> Knots | None:
     """
     Return the net's calibration knots for confidences filtered with `radius` (0: none).
 
@@ -127,7 +131,8 @@ def calibration(net, radius):
     return calibrations[radius]
 
 
-def calibrated(net, cosine, radius=0):
+def calibrated(net: GcpNet, cosine: np.ndarray | torch.Tensor, radius: int = 0
+               ) -> np.ndarray | torch.Tensor:
     """
     Map raw confidences through the net's `calibration` for `radius`, as float32.
 
@@ -147,7 +152,7 @@ def calibrated(net, cosine, radius=0):
 
 
 @functools.cache
-def bf16_native(device='cpu'):
+def bf16_native(device: str | torch.device = 'cpu') -> bool:
     """
     Tell whether bfloat16 convolutions run natively on `device` (for precision 'auto').
 
@@ -161,7 +166,8 @@ def bf16_native(device='cpu'):
     return bool(cnn_int8.cpu_flags() & {'avx512_bf16', 'amx_bf16'})
 
 
-def resolve_precision(precision, device='cpu', int8_fitted=False):
+def resolve_precision(precision: str, device: str | torch.device = 'cpu',
+                      int8_fitted: bool = False) -> str:
     """
     Return the CNN's arithmetic for a `StereoConfig.precision`: 'int8', 'bf16' or 'fp32'.
 
@@ -176,12 +182,12 @@ def resolve_precision(precision, device='cpu', int8_fitted=False):
     return 'bf16' if bf16_native(device) else 'fp32'
 
 
-def network_input(*grays):
+def network_input(*grays: np.ndarray) -> torch.Tensor:
     """Return what the branch sees of gray images, each standardized on its own."""
     return padded_input(torch.from_numpy(np.stack([standardize(g) for g in grays])))
 
 
-def padded_input(x):
+def padded_input(x: torch.Tensor) -> torch.Tensor:
     """
     Return standardized images (N, H, W) as the branch takes them.
 
@@ -191,7 +197,8 @@ def padded_input(x):
     return F.pad(x[:, None], (PAD,) * 4, mode='replicate')
 
 
-def descriptors(net, x, precision='fp32', cancel=None):
+def descriptors(net: GcpNet, x: torch.Tensor, precision: str = 'fp32',
+                cancel: CancelFlag | None = None) -> torch.Tensor:
     """
     Return the raw branch output (N, H, W, 64) of a padded input, on the input's device.
 
@@ -218,7 +225,8 @@ def descriptors(net, x, precision='fp32', cancel=None):
         return x.permute(0, 2, 3, 1)
 
 
-def _conv_relu(conv, x, weight, bias):
+def _conv_relu(conv: nn.Conv2d, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor
+               ) -> torch.Tensor:
     """
     Return relu(conv2d(x, weight, bias)) with the geometry of `conv`.
 
@@ -237,7 +245,7 @@ def _conv_relu(conv, x, weight, bias):
                            dilation=conv.dilation, groups=conv.groups), inplace=True)
 
 
-def _first_layer_bf16(conv, x):
+def _first_layer_bf16(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
     """
     Return relu(conv(x)) in bfloat16 with the accuracy of float32 input and weights.
 
@@ -251,7 +259,7 @@ def _first_layer_bf16(conv, x):
     it): one bfloat16 convolution of 3 input channels, accumulated in float32, faster than
     the 1-channel float32 one.
     """
-    def split(t):
+    def split(t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         hi = t.bfloat16()
         return hi, (t - hi.float()).bfloat16()
 
@@ -261,8 +269,11 @@ def _first_layer_bf16(conv, x):
     return _conv_relu(conv, parts, weight, conv.bias.bfloat16())
 
 
-def confidence(net, left, right, max_disp, precision='fp32', volume=False, seconds=None,
-               cancel=None, radius=0, scratch=None):
+def confidence(net: GcpNet, left: npt.ArrayLike, right: npt.ArrayLike, max_disp: int,
+               precision: str = 'fp32', volume: bool = False,
+               seconds: dict[str, float] | None = None, cancel: CancelFlag | None = None,
+               radius: int = 0, scratch: np.ndarray | None = None
+               ) -> tuple[np.ndarray, ...]:
     """
     Return the CNN confidence of a rectified pair for disparities 0..max_disp-1, on the CPU.
 
@@ -293,7 +304,7 @@ def confidence(net, left, right, max_disp, precision='fp32', volume=False, secon
     cof_c = np.empty((h, w), np.float32)
     cof_d = np.empty((h, w), np.int32)
     cof_dr = np.empty((h, w), np.int32)
-    vol = np.empty((h, w, max_disp), np.float32) if volume else None
+    vol: Any = np.empty((h, w, max_disp), np.float32) if volume else None
     if radius:
         strips = cnn_filter.StripFilter(x[0, 0, PAD:PAD + h, PAD:PAD + w].numpy(), radius,
                                         max_disp, STRIP_ROWS, cof_c, cof_d, cof_dr, scratch)
