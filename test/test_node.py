@@ -94,7 +94,7 @@ def test_exact_and_approximate_sync(harness, pair):
     assert outputs(4)[3:] == [6_000_000_000]
     time.sleep(0.5)
     assert len(harness.disparity) == 4  # nothing from the unmatched stamps
-    assert harness.node.stats['stale'] == 0
+    assert harness.node.stats.totals().stale == 0
 
 
 def test_set_parameters_live(harness, pair):

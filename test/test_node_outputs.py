@@ -266,7 +266,7 @@ def test_a_busy_node_takes_no_images_then_the_newest(harness, pair, monkeypatch)
     monkeypatch.setattr(StereoPipeline, '__call__',
                         lambda pipe, *a, **k: release.wait(60) and process(pipe, *a, **k))
     harness.send_pair(*pair, 'rgb8', 1_000_000_000)
-    wait_for(lambda: not harness.node._worker.idle, 'processing')
+    wait_for(lambda: harness.node.busy, 'processing')
     taken = dict(harness.node.input.received)
     newest = 0
     for i in range(50):  # 50 pairs while the node works
@@ -291,7 +291,7 @@ def test_a_slow_frame_is_no_missing_pair_and_arrivals_are_counted(harness, pair,
                         lambda pipe, *a, **k: release.wait(60) and process(pipe, *a, **k))
     statuses, stamp = [], 1_000_000_000
     harness.send_pair(*pair, 'rgb8', stamp)
-    wait_for(lambda: not harness.node._worker.idle, 'processing')
+    wait_for(lambda: harness.node.busy, 'processing')
     end = time.monotonic() + 3.0  # three times the window, 20 pairs a second
     while time.monotonic() < end:
         stamp += 50_000_000

@@ -31,9 +31,10 @@ def test_errors_are_rate_limited_by_reason(harness, pair):
         harness.send('left', left, 'rgb8', 50_000_000_000 + i * 50_000_000)
         harness.send('right', small, 'rgb8', 50_000_000_000 + i * 50_000_000)
         time.sleep(0.05)
-    wait_for(lambda: harness.node.errors >= 1 and harness.node._worker.idle, 'the errors')
+    wait_for(lambda: harness.node.stats.totals().errors >= 1 and not harness.node.busy,
+             'the errors')
     time.sleep(0.5)
-    assert harness.node.errors >= 6  # the node takes the newest pair when idle
+    assert harness.node.stats.totals().errors >= 6  # the node takes the newest pair when idle
     lines = harness.error_logs()
     assert len(lines) == 1 and 'skipping pair' in lines[0] and 'stamp 50000000000 ns' in lines[0]
 

@@ -20,7 +20,8 @@ Start: `ros2 run gcp_stereo_ros gcp_stereo_node`, `gcp_stereo_node` or
 The node holds the `StereoPipeline` of its parameters and three parts: `LiveParameters`
 (declare, validate, apply), `StereoInput` (subscriptions and pairing) and a `NewestWorker`
 thread that processes the newest pair and publishes here, so parameter requests are
-served while a frame is being processed.
+served while a frame is being processed. It counts what it does in its `NodeStats`
+(`stats`), which /diagnostics and the progress log read.
 
 Start-up settings that cannot work (invalid values, unknown names, a missing weights file,
 `device: cuda` without a GPU, an unreadable params file) end the process with one line and
@@ -45,10 +46,13 @@ from .params import INPUT_PARAMS, NODE_NAME, SYNC_PARAMS
 from .process import run_node
 from .rclpy_messages import ros_data, RosTypes
 from .rosimage import message_to_array
+from .stats import NodeStats, Sample
 from .stereo_input import StereoInput
 from .worker import NewestWorker
 from ..stereo.cancel import CancelFlag, Cancelled
+from ..stereo.health import published, ViewCheck
 from ..stereo.pipeline import StereoPipeline
+from ..stereo.postprocess import valid_window
 
 LOG_PERIOD = 5.0  # seconds between two logs of the same text
 STOP_SECONDS = 1.5  # shutdown waits this long for the frame in progress to stop
@@ -64,6 +68,7 @@ class GcpStereoNode(Node):
     """
 
     params = None  # LiveParameters, while configured
+    stats: NodeStats  # what the node did since configured: pairs, errors, trust
     pipeline = None  # the StereoPipeline of the parameters, while configured
     active = False  # the worker started, the topics subscribed and published
     stopped = True  # no worker thread runs
@@ -83,8 +88,7 @@ class GcpStereoNode(Node):
     def configure(self):
         """Declare and check the parameters, build the pipeline and load its CNN; may raise."""
         self._last_log = {}  # text -> [monotonic time logged, repeats not logged since]
-        self.errors = 0
-        self.last_error = ''
+        self.stats = NodeStats()
         self.params = LiveParameters(self, check=self._check, on_change=self._on_params)
         self.pipeline, self._checked = self._checked, None
         self._warn_config()
@@ -96,7 +100,8 @@ class GcpStereoNode(Node):
         self._worker = NewestWorker(self._process, 'gcp_stereo_worker',
                                     on_error=self._on_worker_error,
                                     on_idle=lambda: self.input.wake(),
-                                    on_quiet=lambda: self.pipeline.release())
+                                    on_quiet=lambda: self.pipeline.release(),
+                                    on_stale=self.stats.dropped_stale)
         self.input = StereoInput(self, self.params.values, on_pair=self._on_pair,
                                  idle=lambda: self._worker.idle, log=self._log)
         # As image_pipeline's publishers on Jazzy: reliable, depth 1, QoS overridable.
@@ -109,9 +114,8 @@ class GcpStereoNode(Node):
                       for name in OUTPUTS}
         self._rectifier = Rectifier()
         self._warned = set()
-        self._latency = []
-        self.processed = 0
-        self._window = {'start': time.monotonic(), 'received': 0, 'seconds': {}}
+        self._views = ViewCheck()
+        self._logged = (time.monotonic(), 0, self.stats.totals())  # at the last progress log
         self.diagnostics = Diagnostics(self)
         self.active = True
         config = self.pipeline.config
@@ -133,20 +137,9 @@ class GcpStereoNode(Node):
         self.params = self.pipeline = self._checked = None
 
     @property
-    def stale(self):
-        """Return the number of pairs dropped because a newer one came before processing."""
-        return self._worker.stale
-
-    @property
-    def stats(self):
-        """Images received, pairs processed, pairs dropped as stale, errors."""
-        return {'received': sum(self.input.received.values()), 'processed': self.processed,
-                'stale': self.stale, 'errors': self.errors}
-
-    def take_latencies(self):
-        """Return and forget the seconds from stamp to publish of the pairs since last call."""
-        latency, self._latency = self._latency, []
-        return latency
+    def busy(self) -> bool:
+        """Return True while a pair waits for the worker or is being processed."""
+        return not self._worker.idle
 
     def _check(self, config):
         """
@@ -192,8 +185,7 @@ class GcpStereoNode(Node):
         next one; `detail` (a stamp, say) is not part of what repeats.
         """
         if severity == 'error':
-            self.errors += 1
-            self.last_error = text
+            self.stats.error(text)
         now = time.monotonic()
         last = self._last_log.setdefault(text, [-math.inf, 0])
         if now - last[0] < LOG_PERIOD:
@@ -235,11 +227,13 @@ class GcpStereoNode(Node):
             if self.context.ok():
                 self._log('error', f'cannot publish the outputs: {err}', f'stamp {stamp} ns')
             return  # else shutting down while this pair was in flight: nothing to send to
-        now = self.get_clock().now().nanoseconds
-        if now:  # 0: use_sim_time and no /clock yet, no time to compare the stamp with
-            self._latency.append((now - stamp) / 1e9)
-        self.processed += 1
-        self._log_progress(result.seconds)
+        now = self.get_clock().now().nanoseconds  # 0: use_sim_time and no /clock yet
+        share, confidence = published(result.disparity, result.disparity_confidence,
+                                      valid_window(pipeline.config, result.disparity.shape))
+        self.stats.pair_done(Sample(time.monotonic(), (now - stamp) / 1e9 if now else None,
+                                    share, confidence, self._views(left, right)),
+                             result.seconds)
+        self._log_progress()
 
     def _publish(self, header, result, config, info, model, why, left, topics, values):
         wanted = {'disparity', 'gcp_mask'} | {
@@ -257,23 +251,25 @@ class GcpStereoNode(Node):
         for name, msg in msgs.items():
             self._pubs[name].publish(msg)
 
-    def _log_progress(self, seconds):
-        w = self._window
-        for stage, s in seconds.items():
-            w['seconds'][stage] = w['seconds'].get(stage, 0.0) + s
+    def _log_progress(self):
+        """Every log_every_n_frames pairs, log the ms per stage and the input since the last."""
+        totals = self.stats.totals()
         n = self.params.values['log_every_n_frames']
-        if n and self.processed % n == 0:
-            elapsed = time.monotonic() - w['start']
-            received = sum(self.input.received.values())
-            pairs_in = (received - w['received']) / 2 / elapsed
-            stages = ', '.join(f'{k} {1000 * v / n:.0f}' for k, v in w['seconds'].items())
-            sync = self.input.sync
-            self.get_logger().info(
-                f'{self.processed} pairs processed; last {n}: ms per stage {stages}; '
-                f'input taken {pairs_in:.1f} pairs/s; dropped stale {self.stale}, '
-                f'unmatched left {sync.dropped["left"]} right {sync.dropped["right"]}, '
-                f'errors {self.errors}')
-            self._window = {'start': time.monotonic(), 'received': received, 'seconds': {}}
+        if not n or totals.processed % n:
+            return
+        since, received_then, then = self._logged
+        now, received = time.monotonic(), sum(self.input.received.values())
+        pairs = max(totals.processed - then.processed, 1)
+        stages = ', '.join(
+            f'{k} {1000 * (v - then.stage_seconds.get(k, 0.0)) / pairs:.0f}'
+            for k, v in totals.stage_seconds.items() if v != then.stage_seconds.get(k))
+        sync = self.input.sync
+        self.get_logger().info(
+            f'{totals.processed} pairs processed; last {pairs}: ms per stage {stages}; '
+            f'input taken {(received - received_then) / 2 / (now - since):.1f} pairs/s; '
+            f'dropped stale {totals.stale}, unmatched left {sync.dropped["left"]} right '
+            f'{sync.dropped["right"]}, errors {totals.errors}')
+        self._logged = (now, received, totals)
 
     def _on_worker_error(self, err):
         where = traceback.extract_tb(err.__traceback__)[-1]
