@@ -97,7 +97,8 @@ def test_the_worker_reports_a_replaced_item_as_stale():
     assert done == [1, 3] and stale == [1] and worker.stop(5)
 
 
-@pytest.mark.parametrize('harness', [{'use_gcp': False}], indirect=True)
+@pytest.mark.parametrize('harness', [{'use_gcp': False, 'log_every_n_frames': 10}],
+                         indirect=True)
 def test_a_black_then_frozen_right_view_is_warned_and_named_within_ten_pairs(harness, pair):
     """Real pairs (each moved by a pixel, so no view repeats) are trusted; failures named."""
     left, right = pair
@@ -122,6 +123,10 @@ def test_a_black_then_frozen_right_view_is_warned_and_named_within_ten_pairs(har
     assert float(got['published share of valid window, running level']) > 0.5
     assert (got['view check'], got['cause']) == ('ok', '')
     assert got['misalignment px'] == 'unknown (not estimated)'
+    progress = [m for m in harness.error_logs('INFO') if 'pairs processed' in m]
+    assert len(progress) == 1 and progress[0].startswith(
+        '10 pairs processed; last 10: ms per stage cost '), progress
+    assert 'dropped stale 0, unmatched left 0 right 0, errors 0' in progress[0]
     for n in range(1, 11):
         status = send(good(10 + n)[0], np.zeros_like(right))
         if status.level == DiagnosticStatus.WARN:
