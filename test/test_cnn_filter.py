@@ -9,7 +9,8 @@ from gcp_stereo_ros.stereo.cnn.correlation import first_argmax
 from gcp_stereo_ros.stereo.cnn.network import (calibrated, confidence, load_net, network_input,
                                                PAD, STRIP_ROWS)
 from gcp_stereo_ros.stereo.cnn.weights import calibration_key, DEFAULT_WEIGHTS, side_file
-from gcp_stereo_ros.stereo.config import PRESETS, StereoConfig, UNFILTERED
+from gcp_stereo_ros.stereo.config import StereoConfig, UNFILTERED
+from gcp_stereo_ros.stereo.costs import COSTS
 from gcp_stereo_ros.stereo.cuda.cnn import device_confidence
 from gcp_stereo_ros.stereo.images import gray_pair
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
@@ -193,7 +194,7 @@ def test_the_filter_rows_are_kept_between_pairs_and_let_go_without_it(tsukuba):
 
 def test_the_filter_is_on_by_default_and_off_in_the_paper_preset():
     assert StereoConfig().cnn_filter_radius == 4
-    assert all(values['cnn_filter_radius'] == 0 for values in PRESETS['paper'].values())
+    assert all(StereoConfig.for_cost(cost, 'paper').cnn_filter_radius == 0 for cost in COSTS)
     with pytest.raises(ValueError, match=r'cnn_filter_radius must be an integer in \[0, 8\]'):
         StereoConfig(cnn_filter_radius=9)
 

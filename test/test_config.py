@@ -4,9 +4,9 @@ import dataclasses
 import re
 
 from gcp_stereo_ros.ros.params import BY_NAME, coerce, config_from_params, PARAMS
-from gcp_stereo_ros.stereo.config import (CHOICES, COST_DEFAULTS, FLAGS, number_text,
-                                          PRESETS, range_text, RANGES, StereoConfig)
-from gcp_stereo_ros.stereo.cost import WINDOWS
+from gcp_stereo_ros.stereo.config import (CHOICES, FLAGS, number_text, PRESETS, range_text,
+                                          RANGES, StereoConfig)
+from gcp_stereo_ros.stereo.costs import COSTS
 from gcp_stereo_ros.stereo.pipeline import StereoResult
 from gcp_stereo_ros.tools import evaluate
 import numpy as np
@@ -86,11 +86,18 @@ def test_a_relation_is_not_said_of_a_value_already_refused():
 
 
 def test_presets_and_replace_still_work_and_are_checked():
-    for preset, costs in PRESETS.items():
-        for cost, values in costs.items():
+    for preset, fields in PRESETS.items():
+        for cost, spec in COSTS.items():
+            if preset not in spec.presets:
+                with pytest.raises(ValueError, match=f"preset '{preset}' has no values for "
+                                   f"cost '{cost}'"):
+                    StereoConfig.for_cost(cost, preset)
+                continue
             config = StereoConfig.for_cost(cost, preset, max_disp=64)
+            values = {**spec.presets['default'], **spec.presets[preset], **fields}
             assert {k: getattr(config, k) for k in values} == values
             assert (config.cost, config.max_disp) == (cost, 64)
+    assert 'sad' in COSTS and 'realtime' not in COSTS['sad'].presets  # the refusal ran
     config = StereoConfig()
     assert dataclasses.replace(config, paths=8).paths == config.replace(paths=8).paths == 8
     with pytest.raises(ValueError, match='theta must be a number in'):
@@ -106,13 +113,13 @@ def test_the_node_parameters_take_their_ranges_and_choices_from_the_config():
     assert fields == set(StereoConfig.__dataclass_fields__)  # every field is a parameter
     for p in PARAMS:
         if p.field == 'window':
-            assert p.range == (*WINDOWS[p.cost], 2), p.name
+            assert p.range == (*COSTS[p.cost].windows, 2), p.name
         elif p.field in RANGES:
             low, high = RANGES[p.field]
             assert p.range == (low, high, 1 if isinstance(low, int) else 0.0), p.name
             assert type(p.default) is type(low), p.name  # the descriptor's kind is the field's
         elif p.field in CHOICES:
-            assert p.choices == CHOICES[p.field], p.name
+            assert p.choices == tuple(CHOICES[p.field]), p.name
 
 
 @pytest.mark.parametrize('name', [p.name for p in PARAMS if p.field and p.range])
@@ -160,8 +167,8 @@ def test_every_field_is_documented_with_its_range_or_choices():
     assert list(docs) == list(StereoConfig.__dataclass_fields__)  # each, in order
     for name, (low, high) in RANGES.items():
         assert f'in {range_text(low, high)}' in docs[name], name
-    for cost, (low, high) in WINDOWS.items():
-        assert f'{cost} in [{low}, {high}]' in docs['window']
+    for cost, spec in COSTS.items():
+        assert f'{cost} in [{spec.windows[0]}, {spec.windows[1]}]' in docs['window']
     for name, choices in CHOICES.items():
         assert all(repr(c).strip("'") in docs[name] for c in choices), name
 
@@ -174,8 +181,8 @@ def _text(value):
 def test_every_field_is_documented_with_its_default_or_each_cost_s():
     docs = documented_fields(StereoConfig)
     for field in dataclasses.fields(StereoConfig):
-        per_cost = {cost: values.get(field.name) for cost, values in COST_DEFAULTS.items()}
-        if field.name in COST_DEFAULTS['census'] and len(set(per_cost.values())) > 1:
+        per_cost = {cost: spec.presets['default'].get(field.name) for cost, spec in COSTS.items()}
+        if field.name in COSTS['census'].presets['default'] and len(set(per_cost.values())) > 1:
             for cost, value in per_cost.items():
                 assert f'{cost} {_text(value)}' in docs[field.name], (field.name, cost)
         else:

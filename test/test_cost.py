@@ -1,6 +1,7 @@
 """Cost volumes: the census definition, SAD against a box filter, invalid cells, bad input."""
 import cv2
-from gcp_stereo_ros.stereo.cost import census_transform, cost_volume, SAD_MAX
+from gcp_stereo_ros.stereo.cost import census_transform, cost_volume
+from gcp_stereo_ros.stereo.costs import SAD_MAX
 from gcp_stereo_ros.stereo.images import gray_pair, standardize
 import numpy as np
 import pytest
@@ -52,7 +53,7 @@ def test_uint16_census_is_scaled_hamming_distance(motorcycle):
     assert fixed.dtype == np.uint16
     np.testing.assert_array_equal(fixed, vol * 10)
     np.testing.assert_array_equal(cost_volume(left, right, 32, 'census', dtype=np.uint16), vol)
-    with pytest.raises(ValueError, match='Census costs only'):
+    with pytest.raises(ValueError, match=r'integer costs only \(sad costs are fractional\)'):
         cost_volume(left, right, 32, 'sad', dtype=np.uint16)
     with pytest.raises(ValueError, match='16 bits'):
         cost_volume(left, right, 32, 'census', scale=1000, dtype=np.uint16)  # 80000 > 65535

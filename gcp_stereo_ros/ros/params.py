@@ -4,8 +4,9 @@ The node's parameters, ROS-free: names, descriptions, ranges and their StereoCon
 The node declares them; `gcp-stereo-bag run --params` reads the same YAML file (a shipped
 config, or what `ros2 param dump` wrote), so a bag is processed exactly as the live node would.
 
-Each matching cost has its own window, theta, P1, P2, c_hi, c_low, gcp_plain_check and
-plain_check (`census.P2`, ...): switching `cost` changes no other parameter, so parameters
+Each registered matching cost (`stereo.costs.COSTS`) has its own window, theta, P1, P2, c_hi,
+c_low, gcp_plain_check and plain_check (`census.P2`, ...), with the cost's default values:
+switching `cost` changes no other parameter, so parameters
 can be set in any order (as `ros2 param load` does, alphabetically) and `ros2 param dump`
 then `load` restores exactly what was dumped.
 """
@@ -15,8 +16,8 @@ from pathlib import Path
 
 import yaml
 
-from ..stereo.config import CHOICES, COST_DEFAULTS, range_text, RANGES, StereoConfig
-from ..stereo.cost import COSTS, WINDOWS
+from ..stereo.config import CHOICES, range_text, RANGES, StereoConfig
+from ..stereo.costs import cost_spec, COSTS
 
 NODE_NAME = 'gcp_stereo_node'
 # Parameters every rclpy node declares (a dump holds them); the bag tools leave them out.
@@ -29,8 +30,8 @@ class Param:
     One node parameter: its name, default, description and StereoConfig field.
 
     A field's parameter takes its range or choices from the config (config.RANGES,
-    config.CHOICES, cost.WINDOWS), so the node's descriptors and the config's checks are
-    one: only node-only parameters give their own.
+    config.CHOICES, `CostSpec.windows`), so the node's descriptors and the config's checks
+    are one: only node-only parameters give their own.
     """
 
     name: str
@@ -45,16 +46,17 @@ class Param:
     def __post_init__(self):
         """Take the field's range or choices from the config, unless given."""
         if self.field == 'window':
-            object.__setattr__(self, 'range', (*WINDOWS[self.cost], 2))
+            object.__setattr__(self, 'range', (*cost_spec(self.cost).windows, 2))
         elif self.field in RANGES:
             low, high = RANGES[self.field]
             object.__setattr__(self, 'range', (low, high, 1 if isinstance(low, int) else 0.0))
         elif self.field in CHOICES and self.choices is None:
-            object.__setattr__(self, 'choices', CHOICES[self.field])
+            object.__setattr__(self, 'choices', tuple(CHOICES[self.field]))
 
 
 def _cost_params(cost):
-    d = COST_DEFAULTS[cost]
+    """Return the parameters of the registered cost `cost`, with its default values."""
+    d = cost_spec(cost).presets['default']
     return (
         Param(f'{cost}.window', _D.window, f'{cost}: matching window size in pixels (odd)',
               'window', cost=cost),
@@ -82,13 +84,13 @@ def _cost_params(cost):
 _D = StereoConfig()
 PARAMS = (
     Param('cost', _D.cost,
-          "matching cost: 'census' or 'sad'; each has its own window, theta, P1, P2, c_hi, "
-          'c_low, gcp_plain_check, plain_check (census.*, sad.*), which a switch leaves as '
+          'matching cost: ' + '; '.join(f"'{s.name}' ({s.summary})" for s in COSTS.values())
+          + '; each has its own window, theta, P1, P2, c_hi, c_low, gcp_plain_check, '
+          f'plain_check ({", ".join(f"{c}.*" for c in COSTS)}), which a switch leaves as '
           'they are', 'cost'),
     Param('max_disparity', _D.max_disp, 'number of disparities searched: 0 .. max_disparity - 1',
           'max_disp'),
-    *_cost_params('census'),
-    *_cost_params('sad'),
+    *(p for cost in COSTS for p in _cost_params(cost)),
     Param('paths', _D.paths, 'SGM path directions: 4, 8 or 16', 'paths'),
     Param('use_gcp', _D.use_gcp, 'refine the cost volume with CNN ground control points',
           'use_gcp'),
@@ -180,9 +182,9 @@ def check_names(names, where=''):
     """Raise ValueError naming the parameters in `names` the node does not have."""
     unknown = sorted(set(names) - set(BY_NAME))
     if unknown:
-        per_cost = sorted({n for n in unknown if f'census.{n}' in BY_NAME})
-        hint = (f' ({", ".join(per_cost)}: each cost has its own, e.g. census.{per_cost[0]}, '
-                f'sad.{per_cost[0]})' if per_cost else '')
+        per_cost = sorted({n for n in unknown if f'{_D.cost}.{n}' in BY_NAME})
+        hint = (f' ({", ".join(per_cost)}: each cost has its own, e.g. '
+                + ', '.join(f'{c}.{per_cost[0]}' for c in COSTS) + ')' if per_cost else '')
         hint += ''.join(f' ({n} is now {RENAMED[n]})' for n in unknown if n in RENAMED)
         raise ValueError(f'{where}unknown parameter(s) {unknown}{hint}{_guesses(unknown)}; '
                          f'known: {sorted(BY_NAME)}')
@@ -190,7 +192,7 @@ def check_names(names, where=''):
 
 def _guesses(names):
     """Return ' (did you mean ...?)' with the known names close to unknown `names`, or ''."""
-    short = {n.split('.', 1)[1]: n for n in BY_NAME if n.startswith('census.')}
+    short = {n.split('.', 1)[1]: n for n in BY_NAME if n.startswith(f'{_D.cost}.')}
     guesses = {}
     for name in names:
         close = difflib.get_close_matches(name, [*BY_NAME, *short], n=1)

@@ -8,45 +8,34 @@ cost's values from a preset ('default', or 'paper': the paper's values, nothing 
 import dataclasses
 from dataclasses import dataclass
 import re
-from typing import Any
+from typing import Any, Collection
 
 import numpy as np
 
-from . import cost as cost_mod
+from .cost import check_window
+from .costs import cost_spec, COSTS
 from .sgm import PATHS
 
-# Defaults for each matching cost, chosen by cross-validation on the validation frames
-# (doc/method.md); theta is on the calibrated scale (cnn.calibrated). plain_check and
-# gcp_plain_check are off for SAD: plain SGM on SAD costs is wrong across the textureless
-# Middlebury scenes (doc/published.md, doc/method.md).
-COST_DEFAULTS: dict[str, dict[str, Any]] = {
-    'census': {'p1': 12.0, 'p2': 128.0, 'theta': 0.2, 'c_hi': 200.0, 'c_low': 2.0,
-               'gcp_lr_check': True, 'gcp_plain_check': True, 'plain_check': 1.5},
-    'sad': {'p1': 0.02, 'p2': 0.5, 'theta': 0.2, 'c_hi': 5.0, 'c_low': 0.001,
-            'gcp_lr_check': True, 'gcp_plain_check': False, 'plain_check': 0.0},
-}
-# The paper's values (Zhong et al., section 4): its theta is read on our calibrated scale.
-PAPER: dict[str, dict[str, Any]] = {
-    'census': {'p1': 4.0, 'p2': 128.0, 'theta': 0.60, 'c_hi': 200.0, 'c_low': 1.3,
-               'gcp_lr_check': False, 'gcp_plain_check': False},
-    'sad': {'p1': 1.0, 'p2': 14.0, 'theta': 0.55, 'c_hi': 5.0, 'c_low': 0.001,
-            'gcp_lr_check': False, 'gcp_plain_check': False},
-}
 # Every invalidation off (stereo.postprocess). The paper published every integer WTA
 # disparity: its preset has this and no sub-pixel fit.
 UNFILTERED: dict[str, Any] = {
     'valid_window': False, 'lr_check': False, 'plain_check': 0.0, 'uniqueness_ratio': 0.0,
     'speckle_size': 0, 'min_depth': 0.0, 'max_depth': 0.0, 'min_confidence': 0.0,
     'background_ratio': 0.0}
-PAPER = {cost: {**values, **UNFILTERED, 'subpixel': False, 'cnn_filter_radius': 0}
-         for cost, values in PAPER.items()}
-PRESETS = {'default': COST_DEFAULTS, 'paper': PAPER}
+# What each preset sets besides a cost's own values (`costs.CostSpec.presets`).
+PRESETS: dict[str, dict[str, Any]] = {
+    'default': {},
+    'paper': {**UNFILTERED, 'subpixel': False, 'cnn_filter_radius': 0},
+    # Camera rate on a CPU: matching at half resolution, fewer paths, the CNN unfiltered
+    # (doc/speed.md, "The real-time preset").
+    'realtime': {'downsample': 2, 'paths': 8, 'cnn_filter_radius': 0},
+}
 DOWNSAMPLE = (1, 2, 4)
 PRECISIONS = ('auto', 'int8', 'bf16', 'fp32')
 MAX_COST_PARAM = 10000.0  # P1, P2, c_hi, c_low: far above any useful value of either cost
 # The valid values of each number field, both ends included: the one source of truth,
 # which the node's parameter descriptors are made from (ros/params.py). The window's
-# range depends on the cost (cost.WINDOWS).
+# range depends on the cost (`CostSpec.windows`).
 RANGES: dict[str, tuple[int, int] | tuple[float, float]] = {
     'max_disp': (1, 1024),
     'p1': (0.0, MAX_COST_PARAM),
@@ -65,16 +54,16 @@ RANGES: dict[str, tuple[int, int] | tuple[float, float]] = {
     'background_ratio': (0.0, 100.0),
     'memory_limit_mb': (64, 1 << 20),
 }
-# The only values of these fields.
-CHOICES: dict[str, tuple[Any, ...]] = {'cost': cost_mod.COSTS, 'paths': PATHS,
-                                       'downsample': DOWNSAMPLE,
-                                       'precision': PRECISIONS}
+# The only values of these fields (the costs: those registered, `costs.COSTS`).
+CHOICES: dict[str, Collection[Any]] = {'cost': COSTS.keys(), 'paths': PATHS,
+                                       'downsample': DOWNSAMPLE, 'precision': PRECISIONS}
 # The fields the CNN's outputs (StereoResult cof_c, cof_d, cof_dr) depend on: a run may reuse
 # another's outputs (`StereoPipeline.__call__`'s `cnn`) only where these are the same.
 CNN_FIELDS = ('weights', 'device', 'precision', 'max_disp', 'downsample', 'cnn_filter_radius')
 FLAGS = ('use_gcp', 'gcp_lr_check', 'gcp_plain_check', 'subpixel', 'median', 'valid_window',
          'lr_check')
 DEVICE = re.compile(r'cpu|cuda(:\d+)?')
+_CENSUS = COSTS['census'].presets['default']  # the default cost's values
 
 
 def number_text(value: float) -> str:
@@ -103,7 +92,8 @@ class StereoConfig:
     Attributes
     ----------
     cost : str
-        Matching cost: ``'census'`` or ``'sad'``; default 'census'.
+        Matching cost, a registered one (`costs.COSTS`): ``'census'`` or ``'sad'``;
+        default 'census'.
     window : int
         Matching window side, px, odd: census in [3, 11], sad in [3, 31]; default 9.
     max_disp : int
@@ -182,15 +172,15 @@ class StereoConfig:
     cost: str = 'census'
     window: int = 9
     max_disp: int = 128
-    p1: float = COST_DEFAULTS['census']['p1']
-    p2: float = COST_DEFAULTS['census']['p2']
+    p1: float = _CENSUS['p1']
+    p2: float = _CENSUS['p2']
     paths: int = 16
     use_gcp: bool = True
-    theta: float = COST_DEFAULTS['census']['theta']
-    c_hi: float = COST_DEFAULTS['census']['c_hi']
-    c_low: float = COST_DEFAULTS['census']['c_low']
-    gcp_lr_check: bool = COST_DEFAULTS['census']['gcp_lr_check']
-    gcp_plain_check: bool = COST_DEFAULTS['census']['gcp_plain_check']
+    theta: float = _CENSUS['theta']
+    c_hi: float = _CENSUS['c_hi']
+    c_low: float = _CENSUS['c_low']
+    gcp_lr_check: bool = _CENSUS['gcp_lr_check']
+    gcp_plain_check: bool = _CENSUS['gcp_plain_check']
     cnn_filter_radius: int = 4
     weights: str = ''
     device: str = 'cpu'
@@ -201,7 +191,7 @@ class StereoConfig:
     # why the left-right check is off: "The left-right check is off by default" there).
     valid_window: bool = True
     lr_check: bool = False
-    plain_check: float = COST_DEFAULTS['census']['plain_check']
+    plain_check: float = _CENSUS['plain_check']
     uniqueness_ratio: float = 1.0
     speckle_size: int = 100
     speckle_range: int = 4
@@ -223,16 +213,21 @@ class StereoConfig:
         """
         Return the config with the `preset`'s values for `cost`, then `overrides` applied.
 
-        `preset` is ``'default'`` (cross-validated on the validation frames) or
-        ``'paper'`` (Zhong et al.'s values, nothing invalidated, no sub-pixel fit);
-        `overrides` are fields. Raises ValueError for an unknown preset or cost, or an
-        invalid value.
+        `preset` is ``'default'`` (cross-validated on the validation frames),
+        ``'paper'`` (Zhong et al.'s values, nothing invalidated, no sub-pixel fit) or
+        ``'realtime'`` (camera rate on a CPU, for the costs that have its values): the
+        cost's default values, then its values of the preset (`CostSpec.presets`), then
+        the preset's own (`PRESETS`); `overrides` are fields. Raises ValueError for an
+        unknown preset or cost, a preset the cost has no values of, or an invalid value.
         """
         if preset not in PRESETS:
             raise ValueError(f'preset must be one of {tuple(PRESETS)}, got {preset!r}')
-        if cost not in PRESETS[preset]:
-            raise ValueError(f'cost must be one of {tuple(COST_DEFAULTS)}, got {cost!r}')
-        return cls(**{'cost': cost, **PRESETS[preset][cost], **overrides})
+        spec = cost_spec(cost)
+        if preset not in spec.presets:
+            raise ValueError(f'preset {preset!r} has no values for cost {cost!r} (it has: '
+                             f'{", ".join(spec.presets)})')
+        return cls(**{'cost': cost, **spec.presets['default'], **spec.presets.get(preset, {}),
+                      **PRESETS[preset], **overrides})
 
     def replace(self, **changes: Any) -> 'StereoConfig':
         """Return a copy with the fields `changes` changed (``dataclasses.replace``)."""
@@ -252,9 +247,9 @@ class StereoConfig:
             if not any(_same(value, c) for c in choices):
                 found.append(f'{name} must be one of {", ".join(map(repr, choices))}, '
                              f'got {value!r}')
-        if self.cost in cost_mod.COSTS:
+        if self.cost in COSTS:
             try:
-                cost_mod.check_window(self.cost, self.window)
+                check_window(self.cost, self.window)
             except ValueError as err:
                 found.append(str(err))
         for name, (low, high) in RANGES.items():
@@ -270,6 +265,8 @@ class StereoConfig:
                          f'got {self.weights!r}')
         if not (isinstance(self.device, str) and DEVICE.fullmatch(self.device)):
             found.append(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
+        elif self.device != 'cpu' and self.cost in COSTS and cost_spec(self.cost).cuda is None:
+            found.append(f"cost {self.cost!r} has no CUDA kernel: use device 'cpu'")
         elif self.precision == 'int8' and self.device != 'cpu':
             found.append(f"precision 'int8' runs on the CPU only, not on {self.device}: use "
                          "'auto', 'bf16' or 'fp32' there")

@@ -1,11 +1,10 @@
 """
-Matching cost volumes of a rectified pair: Census (Hamming) and SAD.
+Matching cost volumes of a rectified pair on the CPU: the dispatch and the built-in kernels.
 
-A volume has shape (H, W, D) for disparities 0..D-1 and dtype float32: Census distances are
-small integers, exact in float32, and the GCP refinement writes the paper's fractional
-C_low (1.3, 0.001) into the same array. Census volumes can also be uint16 fixed point, the
-distances times an integer `scale` (10 makes C_low = 1.3 the integer 13): SGM runs on those
-with exact integer arithmetic and half the memory.
+`cost_volume` runs the CPU kernel of a registered cost (`costs.COSTS`). A volume has shape
+(H, W, D) for disparities 0..D-1 and dtype float32, or uint16 fixed point for an integer
+cost: the costs times an integer `scale` (10 makes C_low = 1.3 the integer 13), on which
+SGM runs with exact integer arithmetic and half the memory.
 
 A cell is valid when the matching window lies inside both images: the left window around
 (x, y) and the right one around (x - d, y). Every other cell gets the cost's maximum
@@ -21,13 +20,10 @@ deviations, truncated at 3.2: the paper's range [0, 3.2] without rescaling.
 from numba import njit, prange
 import numpy as np
 
-from .cancel import flag_array
+from .cancel import CancelFlag, flag_array
+from .costs import cost_spec
 from .images import gray_pair, standardize
 
-COSTS = ('census', 'sad')
-# Matching window sides (odd, both ends included): Census bits must fit two uint64 words.
-WINDOWS = {'census': (3, 11), 'sad': (3, 31)}
-SAD_MAX = 3.2
 UINT16_MAX = 65535
 
 _ONE = np.uint64(1)
@@ -37,22 +33,21 @@ _M4 = np.uint64(0x0F0F0F0F0F0F0F0F)
 _H01 = np.uint64(0x0101010101010101)
 
 
-def max_cost(cost, window):
+def max_cost(cost: str, window: int) -> float:
     """Return the cost assigned to invalid cells: the largest value `cost` can take."""
-    return float(window * window - 1) if cost == 'census' else SAD_MAX
+    return cost_spec(cost).top(window)
 
 
-def check_max_disp(max_disp, width):
+def check_max_disp(max_disp: int, width: int) -> None:
+    """Raise ValueError unless `max_disp` is an integer in [1, width]."""
     if not (isinstance(max_disp, (int, np.integer)) and 1 <= max_disp <= width):
         raise ValueError(f'max_disp must be an integer in [1, image width {width}], '
                          f'got {max_disp!r}')
 
 
-def check_window(cost, window):
-    """Raise ValueError unless `window` is an odd side in the range of `cost` (WINDOWS)."""
-    if cost not in COSTS:
-        raise ValueError(f'cost must be one of {COSTS}, got {cost!r}')
-    low, high = WINDOWS[cost]
+def check_window(cost: str, window: int) -> None:
+    """Raise ValueError unless `window` is an odd side in the range of `cost`'s spec."""
+    low, high = cost_spec(cost).windows
     if not (isinstance(window, (int, np.integer)) and not isinstance(window, bool)
             and window % 2 == 1 and low <= window <= high):
         raise ValueError(f'{cost} window must be an odd integer in [{low}, {high}], '
@@ -93,7 +88,7 @@ def _census_transform(padded, rad):
     return out
 
 
-def census_transform(gray, window=9):
+def census_transform(gray: np.ndarray, window: int = 9) -> np.ndarray:
     """
     Return the Census bit strings of a gray image: uint64 array (2, H, W), low and high words.
 
@@ -168,7 +163,8 @@ def _sad_cost(left, right_rev, ndisp, rad, scale, invalid, out, cancel):
                 cell[d] = invalid
 
 
-def output_array(out, shape, dtype=np.float32):
+def output_array(out: np.ndarray | None, shape: tuple[int, ...],
+                 dtype: type | np.dtype = np.float32) -> np.ndarray:
     """
     Return `out` if it is a C-contiguous `dtype` array of `shape`, a new one if `out` is None.
 
@@ -183,54 +179,69 @@ def output_array(out, shape, dtype=np.float32):
     return out
 
 
-def volume_type(cost, window, scale, dtype):
+def volume_type(cost: str, window: int, scale: int, dtype: type | np.dtype) -> np.dtype:
     """
     Return `dtype` as a numpy dtype if a `cost` volume times `scale` can be held in it.
 
-    That is float32, or uint16 for Census costs that fit in 16 bits; ValueError otherwise,
-    or for a bad window or a `scale` that is not an integer >= 1.
+    That is float32, or uint16 for an integer cost (`CostSpec.integer`) whose largest cost
+    times `scale` fits in 16 bits; ValueError otherwise, or for a bad window or a `scale`
+    that is not an integer >= 1.
     """
     check_window(cost, window)
     if not (isinstance(scale, (int, np.integer)) and not isinstance(scale, bool) and scale >= 1):
         raise ValueError(f'scale must be an integer >= 1, got {scale!r}')
     dtype = np.dtype(dtype)
     if dtype == np.uint16:
-        if cost != 'census':
-            raise ValueError('uint16 volumes hold Census costs only (SAD costs are fractional), '
-                             f'got {cost!r}')
+        if not cost_spec(cost).integer:
+            raise ValueError(f'uint16 volumes hold integer costs only ({cost} costs are '
+                             'fractional)')
         if max_cost(cost, window) * scale > UINT16_MAX:
-            raise ValueError(f'Census costs up to {max_cost(cost, window):g} times scale {scale} '
+            raise ValueError(f'{cost} costs up to {max_cost(cost, window):g} times scale {scale} '
                              'do not fit in 16 bits')
     elif dtype != np.float32:
         raise ValueError(f'dtype must be float32 or uint16, got {dtype}')
     return dtype
 
 
-def cost_volume(left, right, max_disp, cost='census', window=9, out=None, scale=1,
-                dtype=np.float32, cancel=None):
+def cost_volume(left: np.ndarray, right: np.ndarray, max_disp: int, cost: str = 'census',
+                window: int = 9, out: np.ndarray | None = None, scale: int = 1,
+                dtype: type | np.dtype = np.float32,
+                cancel: CancelFlag | None = None) -> np.ndarray:
     """
     Return the matching cost volume (H, W, max_disp) of a rectified pair (see module doc).
 
-    Each cost is multiplied by the integer `scale`; the volume is in `dtype`: float32, or
-    uint16 for Census.
+    `cost` names a registered cost (`costs.COSTS`); each cost is multiplied by the integer
+    `scale`; the volume is in `dtype`: float32, or uint16 for an integer cost.
 
     `left`, `right`: same-size gray or RGB arrays (uint8, uint16 or float). `out`: an array
     to write the volume into (see `output_array`). `cancel`: a CancelFlag; once set, the
     remaining rows are skipped (the volume is then incomplete: check the flag).
     """
     dtype = volume_type(cost, window, scale, dtype)
+    spec = cost_spec(cost)
     lg, rg = gray_pair(left, right)
     check_max_disp(max_disp, lg.shape[1])
+    if spec.standardized:
+        lg, rg = standardize(lg), standardize(rg)
     out = output_array(out, lg.shape + (int(max_disp),), dtype)
-    invalid = dtype.type(max_cost(cost, window) * scale)
-    # Both kernels read the right rows reversed: at w - 1 - x + d lies the right pixel x - d,
-    # so d = 0, 1, ... is a forward run, and their inner loops vectorize.
-    if cost == 'census':
-        right_rev = np.ascontiguousarray(census_transform(rg, window)[:, :, ::-1])
-        _census_cost(census_transform(lg, window), right_rev, int(max_disp), window // 2,
-                     int(scale), invalid, out, flag_array(cancel))
-    else:
-        right_rev = np.ascontiguousarray(standardize(rg)[:, ::-1])
-        _sad_cost(standardize(lg), right_rev, int(max_disp), window // 2, np.float32(scale),
-                  invalid, out, flag_array(cancel))
+    spec.kernel('cpu')(lg, rg, int(max_disp), window, scale,
+                       dtype.type(max_cost(cost, window) * scale), out, flag_array(cancel))
     return out
+
+
+# Both kernels read the right rows reversed: at w - 1 - x + d lies the right pixel x - d, so
+# d = 0, 1, ... is a forward run, and their inner loops vectorize.
+
+def census_volume(left: np.ndarray, right: np.ndarray, max_disp: int, window: int, scale: int,
+                  invalid: np.generic, out: np.ndarray, cancel: np.ndarray) -> None:
+    """Write Census costs into `out` (the `CostSpec.cpu` kernel of 'census')."""
+    right_rev = np.ascontiguousarray(census_transform(right, window)[:, :, ::-1])
+    _census_cost(census_transform(left, window), right_rev, max_disp, window // 2, int(scale),
+                 invalid, out, cancel)
+
+
+def sad_volume(left: np.ndarray, right: np.ndarray, max_disp: int, window: int, scale: int,
+               invalid: np.generic, out: np.ndarray, cancel: np.ndarray) -> None:
+    """Write SAD costs of standardized images into `out` (the `CostSpec.cpu` kernel of 'sad')."""
+    _sad_cost(left, np.ascontiguousarray(right[:, ::-1]), max_disp, window // 2,
+              np.float32(scale), invalid, out, cancel)

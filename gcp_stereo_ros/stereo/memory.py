@@ -8,9 +8,10 @@ import ctypes
 
 import numpy as np
 
-from . import cost as cost_mod
 from .cnn.filter import scratch_size
 from .config import DOWNSAMPLE
+from .cost import max_cost, UINT16_MAX
+from .costs import cost_spec
 from .sgm import directions, path_sum_bound
 
 MIB = 1 << 20
@@ -22,16 +23,17 @@ def fixed_point_scale(cfg):
 
     s makes s * (Census costs, P1, P2, and C_hi, C_low with GCPs) integers whose path sums,
     at most paths * s * (max cost + P2), fit in uint16 (s = 10 for the paper's C_low = 1.3);
-    None for SAD, or values such as C_low = 1.2345, which would need s = 2000. With an s
+    None for a cost that is not integer (SAD: `CostSpec.integer`), or values such as
+    C_low = 1.2345, which would need s = 2000. With an s
     the pipeline keeps its volumes in uint16: half the memory, faster SGM, exact integer
     arithmetic; the disparities equal the float32 path's except where float32 rounding of a
     fractional value breaks a tie.
     """
-    if cfg.cost != 'census':
+    if not cost_spec(cfg.cost).integer:
         return None
     values = (cfg.p1, cfg.p2) + ((cfg.c_hi, cfg.c_low) if cfg.use_gcp else ())
-    top = max(cost_mod.max_cost(cfg.cost, cfg.window), cfg.c_hi if cfg.use_gcp else 0)
-    for s in range(1, int(cost_mod.UINT16_MAX // path_sum_bound(cfg.paths, top, cfg.p2)) + 1):
+    top = max(max_cost(cfg.cost, cfg.window), cfg.c_hi if cfg.use_gcp else 0)
+    for s in range(1, int(UINT16_MAX // path_sum_bound(cfg.paths, top, cfg.p2)) + 1):
         if all(abs(v * s - round(v * s)) <= 1e-9 * max(1.0, v * s) for v in values):
             return s
     return None

@@ -28,37 +28,63 @@ from ..evaluation.viz import disparity_picture, save_png
 from ..stereo.backend import cnn_confidence
 from ..stereo.cnn.weights import int8_entry
 from ..stereo.config import PRESETS, StereoConfig
-from ..stereo.images import gray_pair
+from ..stereo.costs import COSTS
+from ..stereo.images import bin_area, gray_pair, upsample
 from ..stereo.pipeline import StereoPipeline
 
-METHODS = ('sad', 'census', 'sad+gcp', 'census+gcp', 'cnn', 'opencv-sgbm')
+# The peer, OpenCV StereoSGBM, as methods: its mode and the factor it matches at (2: both
+# images area-binned as `downsample: 2` bins them, D / 2, the disparity x 2 at full size).
+OPENCV_MODES: dict[str, tuple[int, int]] = {
+    'opencv-sgbm-hh': (cv2.STEREO_SGBM_MODE_HH, 1),
+    'opencv-sgbm': (cv2.STEREO_SGBM_MODE_SGBM, 1),
+    'opencv-sgbm-3way': (cv2.STEREO_SGBM_MODE_SGBM_3WAY, 1),
+    'opencv-sgbm-hh-half': (cv2.STEREO_SGBM_MODE_HH, 2),
+    'opencv-sgbm-half': (cv2.STEREO_SGBM_MODE_SGBM, 2),
+    'opencv-sgbm-3way-half': (cv2.STEREO_SGBM_MODE_SGBM_3WAY, 2),
+}
 # Fields that options set: --set (and gcp-stereo-plot's --grid) may not.
 OPTION_FIELDS = {'cost': '--methods', 'use_gcp': '--methods', 'max_disp': '--max-disp',
                  'paths': '--paths'}
 FIELDS = sorted(set(StereoConfig.__dataclass_fields__) - set(OPTION_FIELDS))  # --set's keys
 
 
-def opencv_sgbm(left, right, max_disp, block=5):
-    """
-    Return the peer's disparity: OpenCV StereoSGBM in MODE_HH (full 8-path SGM).
+def pipeline_methods() -> tuple[str, ...]:
+    """Return the pipeline's methods: each registered cost alone and with GCPs ('sad+gcp')."""
+    return (*COSTS, *(f'{cost}+gcp' for cost in COSTS))
 
-    The disparity is float32, NaN where invalid. Its own invalidating filters (uniqueness,
+
+def methods() -> tuple[str, ...]:
+    """Return every method: the pipeline's, the CNN alone ('cnn'), OpenCV's."""
+    return (*pipeline_methods(), 'cnn', *OPENCV_MODES)
+
+
+def opencv_sgbm(left: np.ndarray, right: np.ndarray, max_disp: int,
+                method: str = 'opencv-sgbm-hh', block: int = 5) -> np.ndarray:
+    """
+    Return the peer's disparity: OpenCV StereoSGBM in the mode of `method` (OPENCV_MODES).
+
+    MODE_HH is full 8-path SGM on one core, MODE_SGBM 5 paths, MODE_SGBM_3WAY 4 paths on
+    every core OpenCV uses; P1 = 8 block**2, P2 = 32 block**2. The disparity is float32 at
+    the input's size, NaN where invalid. Its own invalidating filters (uniqueness,
     left-right, speckle) are off; it still leaves no estimate where x < max_disp can not be
     searched (filled by background interpolation for bad1..bad5).
     """
+    mode, factor = OPENCV_MODES[method]
     lg, rg = gray_pair(left, right)
     lo, hi = min(lg.min(), rg.min()), max(lg.max(), rg.max())
     if lo < 0 or hi > 255 or hi <= 1:  # uint16 or float input: one joint scale to 0..255
         lg, rg = ((g - lo) * (255.0 / max(hi - lo, 1e-6)) for g in (lg, rg))
+    shape = lg.shape
+    if factor > 1:
+        lg, rg = (bin_area(np.asarray(g, np.float32), factor) for g in (lg, rg))
     lg, rg = lg.astype(np.uint8), rg.astype(np.uint8)
-    ndisp = -(-int(max_disp) // 16) * 16
+    ndisp = -(-int(max_disp) // (16 * factor)) * 16
     sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=ndisp, blockSize=block,
                                  P1=8 * block * block, P2=32 * block * block, disp12MaxDiff=-1,
-                                 uniquenessRatio=0, speckleWindowSize=0,
-                                 mode=cv2.STEREO_SGBM_MODE_HH)
-    disp = sgbm.compute(lg, rg).astype(np.float32) / 16.0
+                                 uniquenessRatio=0, speckleWindowSize=0, mode=mode)
+    disp = sgbm.compute(lg, rg).astype(np.float32) * (factor / 16.0)
     disp[disp < 0] = np.nan
-    return disp
+    return upsample(disp, factor, shape) if factor > 1 else disp
 
 
 def cnn_method(method):
@@ -69,7 +95,7 @@ def cnn_method(method):
 
 
 class Runner:
-    """Runs any method of METHODS on frames, sharing one loaded CNN."""
+    """Runs any method of `methods()` on frames, sharing one loaded CNN."""
 
     def __init__(self, paths=16, overrides=None, preset='default'):
         self.paths = paths
@@ -96,11 +122,11 @@ class Runner:
 
     def run(self, method, left, right, max_disp):
         """(disparity, StereoResult or None, seconds) of `method` on one pair."""
-        if method not in METHODS:
-            raise ValueError(f'unknown method {method!r}; choose from {METHODS}')
+        if method not in methods():
+            raise ValueError(f'unknown method {method!r}; choose from {methods()}')
         t = time.perf_counter()
-        if method == 'opencv-sgbm':
-            return opencv_sgbm(left, right, max_disp), None, time.perf_counter() - t
+        if method in OPENCV_MODES:
+            return opencv_sgbm(left, right, max_disp, method), None, time.perf_counter() - t
         if method == 'cnn':  # winner-takes-all of the CNN confidence volume alone
             pipe = self.pipeline(cnn_method(method), max_disp)
             cfg = pipe.config
@@ -160,8 +186,8 @@ def add_options(ap, dataset_required=True):
                     help='dataset folder in any supported layout (searched recursively; for KITTI '
                          "the folder holding training/), or 'motorcycle'; repeatable")
     ap.add_argument('--frames', nargs='+', help='frame names or shell patterns (default: all)')
-    ap.add_argument('--methods', nargs='+', default=['sad', 'census', 'opencv-sgbm'],
-                    choices=METHODS)
+    ap.add_argument('--methods', nargs='+', default=['sad', 'census', 'opencv-sgbm-hh'],
+                    choices=methods())
     ap.add_argument('--max-disp', type=positive_int,
                     help="disparities searched (default: each frame's own)")
     ap.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
@@ -183,7 +209,7 @@ def make_runner(args):
     """
     runner = Runner(args.paths, parse_overrides(args.set), args.preset)
     for method in args.methods:
-        run_by = cnn_method(method) or (None if method == 'opencv-sgbm' else method)
+        run_by = cnn_method(method) or (None if method in OPENCV_MODES else method)
         if run_by is not None:
             try:
                 runner.config(run_by, args.max_disp or 128)

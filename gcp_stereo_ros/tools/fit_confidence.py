@@ -36,7 +36,7 @@ from tqdm import tqdm
 import yaml
 
 from .cli import console_main
-from .evaluate import Runner, select_frames
+from .evaluate import pipeline_methods, Runner, select_frames
 from ..evaluation.datasets import load_frame
 from ..stereo.cnn.weights import calibration_key, INT8_KEY, method_key, side_file
 from ..stereo.config import DOWNSAMPLE, RANGES, StereoConfig, UNFILTERED
@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> None:
     which.add_argument('--frames', nargs='+', help='validation frame names or patterns')
     which.add_argument('--split', help="a split file: its 'validation' frames")
     ap.add_argument('--methods', nargs='+', default=['census+gcp'],
-                    choices=('census', 'sad', 'census+gcp', 'sad+gcp'))
+                    choices=pipeline_methods())
     ap.add_argument('--downsample', nargs='+', type=int, default=[1], choices=DOWNSAMPLE,
                     help='fit for each of these downsample factors (each has its own fit)')
     ap.add_argument('--weights', default='', help="CNN weights ('' = the shipped ones)")

@@ -10,6 +10,10 @@ gcp-stereo-plot: the paper's experiment figures as matplotlib PNGs.
          error (> 3 px) among the x % most confident published pixels against x, for the
          disparity_confidence, the CNN confidence and the oracle (the error itself), mean
          over the frames, and each curve's area: how confidence measures are compared.
+  rate   rate against error: mean dense error (> 3 px, unpublished pixels interpolated) on the
+         frames given against the time of a `gcp-stereo-bench --json` run, of our modes and
+         OpenCV StereoSGBM's that the bench timed (its `modes`), as a table and a plot; time as
+         a ratio to OpenCV MODE_SGBM_3WAY at full size, measured in the same bench.
   training
          the curves of a `gcp-stereo-train` run from its weights or a checkpoint: training
          and validation hinge loss, WTA accuracy and GCP density/accuracy per epoch (means
@@ -25,11 +29,14 @@ import matplotlib
 import numpy as np
 
 from .cli import console_main, positive_int
-from .evaluate import FIELDS, parse_overrides, Runner, select_frames
+from .evaluate import (FIELDS, OPENCV_MODES, opencv_sgbm, parse_overrides, pipeline_methods,
+                       Runner, select_frames)
 from ..evaluation.datasets import load_frame
 from ..evaluation.metrics import error_rates, sparsification, sparsification_area
-from ..stereo.config import CNN_FIELDS
+from ..stereo.config import CNN_FIELDS, StereoConfig
+from ..stereo.costs import COSTS
 from ..stereo.gcp import gcp_quality
+from ..stereo.pipeline import StereoPipeline
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402, I100  (after choosing the headless backend)
@@ -192,6 +199,57 @@ def sparsify(args):
     print(f'wrote {path}')
 
 
+def rate(args: argparse.Namespace) -> None:
+    try:
+        bench = json.loads(args.bench.read_text())
+        modes = {k: bench['modes'][k] for k in args.modes or bench['modes']}
+        seconds = {k: bench['stages'][k] for k in modes}
+        peer = bench['stages']['opencv_sgbm_3way']
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f'{args.bench}: not a gcp-stereo-bench --json file that timed '
+                         f'these modes ({e!r})') from None
+    frames = [load_frame(*f) for f in select_frames(args.dataset, args.frames)]
+    rows, pipe = [], None
+    for name, mode in modes.items():
+        for frame in frames:
+            if mode['method'] in OPENCV_MODES:
+                disp = opencv_sgbm(frame.left, frame.right, frame.max_disp, mode['method'])
+            else:  # as the bench made it
+                cost, _, gcp = mode['method'].partition('+')
+                config = StereoConfig.for_cost(cost, mode['preset'], use_gcp=bool(gcp),
+                                               max_disp=frame.max_disp, **mode['set'])
+                pipe = StereoPipeline(config) if pipe is None else pipe.with_config(config)
+                disp = pipe(frame.left, frame.right).disparity
+            rows.append({'mode': name, 'frame': frame.name,
+                         **error_rates(disp, frame.gt, frame.valid)})
+    table = [{'mode': name, 'seconds': seconds[name], 'x_3way': seconds[name] / peer,
+              **{k: float(np.mean([r[k] for r in rows if r['mode'] == name]))
+                 for k in ('bad3', 'density', 'bad3_published')}} for name in modes]
+    print(f'{bench.get("device", "unknown CPU")}; load average {bench.get("load_average")}; '
+          f'errors: mean of {len(frames)} frame(s)')
+    print(f'{"mode":<28}{"seconds":>8}{"x 3WAY":>8}{"pairs/s":>9}{"bad3 %":>8}'
+          f'{"density %":>10}{"bad3 of published %":>21}')
+    for t in table:
+        print(f'{t["mode"]:<28}{t["seconds"]:8.3f}{t["x_3way"]:8.2f}{1 / t["seconds"]:9.2f}'
+              f'{t["bad3"]:8.2f}{t["density"]:10.1f}{t["bad3_published"]:21.2f}')
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / 'rate.json').write_text(json.dumps({'table': table, 'rows': rows}, indent=1))
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for t in table:
+        ours = not t['mode'].startswith('opencv_')
+        ax.plot(t['x_3way'], t['bad3'], 'o' if ours else 's', color='C0' if ours else 'C1')
+        ax.annotate(t['mode'], (t['x_3way'], t['bad3']), fontsize=7, xytext=(4, 3),
+                    textcoords='offset points')
+    ax.set_xscale('log')
+    ax.set_xlabel('time of a KITTI pair (1242x375, D 128), x OpenCV MODE_SGBM_3WAY')
+    ax.set_ylabel(f'dense error > 3 px (%), mean of {len(frames)} frame(s)')
+    ax.set_title(f'ours (blue) and OpenCV (orange); {bench.get("device", "")}', fontsize=8)
+    ax.grid(alpha=0.3, which='both')
+    fig.tight_layout()
+    fig.savefig(args.out / 'rate.png', dpi=110)
+    print(f'wrote {args.out / "rate.png"}')
+
+
 def bars(args):
     try:
         rows = json.loads(args.json.read_text())
@@ -199,7 +257,7 @@ def bars(args):
         err = {(r['method'], r['frame']): r['bad3'] for r in rows}
     except (ValueError, KeyError, TypeError) as e:
         raise ValueError(f'{args.json}: not a gcp-stereo-eval --json file ({e!r})') from None
-    pairs = [(c, f'{c}+gcp') for c in ('sad', 'census')
+    pairs = [(c, f'{c}+gcp') for c in COSTS
              if all((m, f) in err for m in (c, f'{c}+gcp') for f in frames)]
     if not pairs:
         raise ValueError(f'{args.json} needs both a cost and its +gcp method on every frame')
@@ -272,7 +330,7 @@ def main(argv: list[str] | None = None) -> None:
     sp = sub.add_parser('sweep', help='error and GCP quality over a parameter grid')
     sp.add_argument('--dataset', action='append', required=True)
     sp.add_argument('--frames', nargs='+')
-    sp.add_argument('--method', choices=('census+gcp', 'sad+gcp', 'census', 'sad'),
+    sp.add_argument('--method', choices=pipeline_methods(),
                     default='census+gcp')
     sp.add_argument('--grid', action='append', required=True, metavar='NAME=LO:HI:STEP|V1,V2',
                     help='StereoConfig field and its values, e.g. theta=0:1:0.05 or p2=64,128; '
@@ -289,13 +347,21 @@ def main(argv: list[str] | None = None) -> None:
     zp = sub.add_parser('sparsification', help='error of the most confident x %% against x')
     zp.add_argument('--dataset', action='append', required=True)
     zp.add_argument('--frames', nargs='+')
-    zp.add_argument('--method', choices=('census+gcp', 'sad+gcp', 'census', 'sad'),
+    zp.add_argument('--method', choices=pipeline_methods(),
                     default='census+gcp')
     zp.add_argument('--set', action='append', metavar='KEY=VALUE', help='parameter override')
     zp.add_argument('--max-disp', type=positive_int)
     zp.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
     zp.add_argument('--out', type=Path, default=Path('out/plots'))
     zp.set_defaults(run=sparsify)
+    rp = sub.add_parser('rate', help='error against time, ours and OpenCV, from a bench run')
+    rp.add_argument('--bench', type=Path, required=True, help='a gcp-stereo-bench --json file')
+    rp.add_argument('--dataset', action='append', required=True)
+    rp.add_argument('--frames', nargs='+')
+    rp.add_argument('--modes', nargs='+', help='modes of the bench to show (default: all its '
+                    '`modes`), e.g. pipeline pipeline_downsample2 opencv_sgbm_3way')
+    rp.add_argument('--out', type=Path, default=Path('out/plots'))
+    rp.set_defaults(run=rate)
     tp = sub.add_parser('training', help='loss and validation curves of a training run')
     tp.add_argument('--weights', type=Path, required=True,
                     help='gcp-stereo-train weights or one of its checkpoints')

@@ -5,12 +5,15 @@ One thread per pixel, looping over d as the CPU kernels do. Census costs are int
 equal the CPU's exactly; SAD sums each window directly, in another order than the CPU's
 sliding sums, so it agrees within float32 rounding.
 """
+from typing import Any
+
 from numba import cuda, njit
 import numpy as np
 import torch
 
 from . import gpu
 from ..cost import check_max_disp, max_cost, volume_type
+from ..costs import cost_spec
 
 
 @cuda.jit
@@ -88,28 +91,37 @@ def _pixel(i, h, w, nd, rad):
     return y, x, 0
 
 
-def cost_volume(images, max_disp, cost='census', window=9, out=None, scale=1, dtype=np.float32):
+def cost_volume(images: Any, max_disp: int, cost: str = 'census', window: int = 9,
+                out: Any = None, scale: int = 1, dtype: type | np.dtype = np.float32) -> Any:
     """
     Return the cost volume (H, W, max_disp) of a pair on the GPU, as `cost.cost_volume`.
 
-    `images`: float32 tensor (2, H, W) on the device, left and right: the gray images for
-    Census, each standardized (`images.standardize`) for SAD. `out`: a contiguous tensor of
-    the volume's shape and type to write into, or None. Returns a tensor on the device.
+    `images`: float32 tensor (2, H, W) on the device, left and right: the gray images, or
+    each standardized (`images.standardize`) for a cost whose spec says so. `out`: a
+    contiguous tensor of the volume's shape and type to write into, or None. Returns a
+    tensor on the device; ValueError for a cost without a CUDA kernel.
     """
     dtype = volume_type(cost, window, scale, dtype)
+    kernel = cost_spec(cost).kernel('cuda')
     _, h, w = images.shape
     check_max_disp(max_disp, w)
     shape = (h, w, int(max_disp))
     if out is None:
         out = torch.empty(shape, dtype=gpu.VOLUME_TYPES[dtype], device=images.device)
-    invalid = dtype.type(max_cost(cost, window) * scale)
-    rad = window // 2
-    if cost == 'census':
-        bits = torch.empty((2, 2, h, w), dtype=torch.uint64, device=images.device)
-        for k in range(2):
-            gpu.launch(_census_transform, h * w, images[k], rad, bits[k])
-        gpu.launch(_census_cost, h * w, bits[0], bits[1], rad, int(scale), invalid, out)
-    else:
-        gpu.launch(_sad_cost, h * w, images[0], images[1], rad, np.float32(scale),
-                   invalid, out)
+    kernel(images, window, scale, dtype.type(max_cost(cost, window) * scale), out)
     return out
+
+
+def census_volume(images: Any, window: int, scale: int, invalid: np.generic, out: Any) -> None:
+    """Write Census costs into the tensor `out` (the `CostSpec.cuda` kernel of 'census')."""
+    _, h, w = images.shape
+    bits = torch.empty((2, 2, h, w), dtype=torch.uint64, device=images.device)
+    for k in range(2):
+        gpu.launch(_census_transform, h * w, images[k], window // 2, bits[k])
+    gpu.launch(_census_cost, h * w, bits[0], bits[1], window // 2, int(scale), invalid, out)
+
+
+def sad_volume(images: Any, window: int, scale: int, invalid: np.generic, out: Any) -> None:
+    """Write SAD costs of standardized images into `out` (the `CostSpec.cuda` kernel of 'sad')."""
+    gpu.launch(_sad_cost, images[0].shape[0] * images[0].shape[1], images[0], images[1],
+               window // 2, np.float32(scale), invalid, out)
