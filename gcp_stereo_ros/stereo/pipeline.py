@@ -9,7 +9,7 @@ invalidation (`postprocess`) -> one download of what is published. Its settings 
 """
 from dataclasses import dataclass
 import time
-from typing import Any, cast
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -18,9 +18,10 @@ from .cancel import CancelFlag
 from .cnn.filter import scratch_size
 from .cnn.weights import confidence_fit
 from .config import StereoConfig
+from .costs import cost_spec
 from .images import bin_area, gray_pair, subsample, upsample
 from .memory import call_glibc, check_memory, volume_arithmetic
-from .stages import Backend, CnnConfidence
+from .stages import Array, Backend, Buffers, CnnConfidence, CostVolume, Winners
 
 # The paths of plain SGM for `plain_check` and `gcp_plain_check`: horizontal and vertical
 # (chosen on the validation frames: doc/published.md, "Plain SGM as a second opinion").
@@ -188,91 +189,199 @@ class StereoPipeline:
             that would need more than memory_limit_mb, saying what to lower.
 
         """
-        cfg, b = self.config, self.backend
-        if cfg.use_gcp and cnn is not None:
-            if len(cnn) != 3:
-                raise ValueError('cnn must be (cof_c, cof_d, cof_dr), as StereoResult.cnn '
-                                 'holds them')
-            cnn = CnnConfidence(*cnn)
-        seconds: dict[str, float] = {}
-        t = time.perf_counter()
-
-        def lap(stage: str | None) -> None:
-            """Record the time since the last lap as `stage` (None: only restart the clock)."""
-            nonlocal t
-            if timed:
-                b.synchronize()
-            now = time.perf_counter()
-            if stage is not None:
-                seconds[stage] = now - t
-            t = now
-            if cancel is not None:
-                cancel.check()
-
+        cfg = self.config
+        reused = _reused_cnn(cnn) if cfg.use_gcp else None
+        run = _Run(self.backend, cancel, timed)
         left, right = gray_pair(left, right)
         check_memory(cfg, *left.shape)
-        shape, f = left.shape, cfg.downsample
-        if f > 1:
-            left, right = bin_area(left, f), bin_area(right, f)
-            if cfg.use_gcp and cnn is not None:  # undo the upsampling of its run
-                cof_c, cof_d, cof_dr = (subsample(a, f, left.shape) for a in cnn)
-                cnn = CnnConfidence(cof_c, cof_d // f, cof_dr // f)
-            lap('downsample')
-        nd = cfg.matched_disp
-        scale, dtype, fixed = volume_arithmetic(cfg)
-        fresh = cfg.use_gcp and cnn is None  # the CNN runs
-        radius = cfg.matched_radius if fresh else 0
-        # Kept buffers of another shape or type are let go now, before anything is allocated.
-        kept = b.buffers(left.shape + (nd,), dtype, filter_size(left.shape, nd, radius))
-        pair = b.upload(left, right, cfg.use_gcp or cfg.cost == 'sad')
-        on_device: CnnConfidence | None = (b.to_device(cnn) if cfg.use_gcp and cnn is not None
-                                           else None)
-        lap(None if b.host else 'upload')
-        if fresh:
-            on_device = b.cnn_confidence(self.net, pair, nd, cfg.precision, radius, kept.scratch,
-                                         seconds if timed or b.host else None, cancel)
-            lap(None)  # the CNN timed its own stages
-        volume = b.cost_volume(pair, nd, cfg.cost, cfg.window, scale or 1, dtype, kept.cost,
-                               cancel)
-        lap('cost')
-        total = kept.total
-        plain = gcp = sure = None
-        if cfg.plain_sgm:  # into the path sums the GCPs' SGM then reuses
-            total = b.aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), PLAIN_PATHS, total, cancel)
-            plain = b.disparity(total, cancel)
-            lap('plain_sgm')
-        if cfg.use_gcp:
-            assert on_device is not None  # given (cnn) or computed (fresh)
-            volume, gcp = b.select_refine(volume, on_device, cfg.theta, fixed(cfg.c_hi),
-                                          fixed(cfg.c_low), cfg.gcp_lr_check,
-                                          plain if cfg.gcp_plain_check else None)
-            lap('refine')
-        total = b.aggregate(volume, fixed(cfg.p1), fixed(cfg.p2), cfg.paths, total, cancel)
-        b.keep(kept._replace(cost=volume.costs, total=total))
-        lap('sgm')
-        won = b.winners(total, cfg.subpixel, cancel)
-        if cfg.median:
-            won = won._replace(disparity=b.median(won.disparity))
-        lap('wta')
-        if self.fit is not None:
-            sure = b.disparity_confidence(self.fit, won, on_device, gcp)
-            lap('disparity_confidence')
-        disp, sure = b.invalidate(won, sure, total, plain, cfg, camera)
-        lap('invalidate')
-        new_cnn = tuple(on_device) if fresh and on_device is not None else ()
-        host = b.to_host(disp, won.consistent, won.margin, sure, gcp, *new_cnn)
-        disp, consistent, m = cast(tuple[np.ndarray, np.ndarray, np.ndarray], host[:3])
-        sure, gcp = host[3:5]
-        if new_cnn:
-            cnn = CnnConfidence(*host[5:])
-        lap(None if b.host else 'download')
-        cof_c, cof_d, cof_dr = cnn if cfg.use_gcp and cnn is not None else (None,) * 3
-        if f > 1:  # back to full size, disparities in full-size pixels
-            disp, consistent, m = (upsample(a, f, shape)
-                                   for a in (disp * disp.dtype.type(f), consistent, m))
-            cof_d, cof_dr = (None if a is None else a * a.dtype.type(f) for a in (cof_d, cof_dr))
-            gcp, cof_c, cof_d, cof_dr, sure = (None if a is None else upsample(a, f, shape)
-                                               for a in (gcp, cof_c, cof_d, cof_dr, sure))
-            lap('upsample')
+        shape = left.shape
+        if cfg.downsample > 1:
+            left, right, reused = self._to_matching_grid(left, right, reused, run)
+        published = self._match(left, right, reused, camera, run)
+        if cfg.use_gcp and reused is not None:  # the CNN did not run: its outputs are the input's
+            published = published._replace(cnn=reused)
+        if cfg.downsample > 1:
+            published = self._to_input_grid(published, shape, run)
         call_glibc('malloc_trim', 0)  # the heap blocks this pair freed (see mmap_large_arrays)
-        return StereoResult(disp, gcp, cof_c, cof_d, cof_dr, seconds, sure, consistent, m)
+        cof_c, cof_d, cof_dr = published.cnn or (None, None, None)
+        return StereoResult(disparity=published.disparity, gcp=published.gcp, cof_c=cof_c,
+                            cof_d=cof_d, cof_dr=cof_dr, seconds=run.seconds,
+                            disparity_confidence=published.confidence,
+                            consistent=published.consistent, margin=published.margin)
+
+    def _match(self, left: np.ndarray, right: np.ndarray, reused: CnnConfidence | None,
+               camera: tuple[float, float] | None, run: '_Run') -> '_Published':
+        """Run the method on the matching grid; return what is published, on the host."""
+        cfg, b = self.config, self.backend
+        scale, dtype, run.fixed = volume_arithmetic(cfg)
+        fresh = cfg.use_gcp and reused is None
+        radius = cfg.matched_radius if fresh else 0
+        shape = left.shape + (cfg.matched_disp,)
+        # Kept buffers of another shape or type are let go now, before anything is allocated.
+        run.kept = b.buffers(shape, dtype, filter_size(left.shape, shape[2], radius))
+        pair = b.upload(left, right, cfg.use_gcp or cost_spec(cfg.cost).standardized)
+        cnn = b.to_device(reused) if reused is not None else None
+        run.lap(None if b.host else 'upload')
+        if fresh:
+            cnn = self._cnn_confidence(pair, radius, run)
+        volume = self._cost_volume(pair, scale or 1, dtype, run)
+        plain = self._plain_sgm(volume, run) if cfg.plain_sgm else None
+        gcps = None
+        if cfg.use_gcp:
+            assert cnn is not None  # given (reused) or computed (fresh)
+            volume, gcps = self._refine(volume, cnn, plain, run)
+        total = self._sgm(volume, run)
+        winners = self._winners(total, run)
+        confidence = self._disparity_confidence(winners, cnn, gcps, run)
+        disparity, confidence = b.invalidate(winners, confidence, total, plain, cfg, camera)
+        run.lap('invalidate')
+        published = _Published(disparity, winners.consistent, winners.margin, confidence, gcps,
+                               cnn if fresh else None)
+        return self._download(published, run)
+
+    def _cnn_confidence(self, pair: Any, radius: int, run: '_Run') -> CnnConfidence:
+        """Return the CNN confidence of the pair (timed by the CNN's own stages)."""
+        b, cfg = self.backend, self.config
+        cnn = b.cnn_confidence(self.net, pair, cfg.matched_disp, cfg.precision, radius,
+                               run.kept.scratch, run.seconds if run.timed or b.host else None,
+                               run.cancel)
+        run.lap(None)
+        return cnn
+
+    def _cost_volume(self, pair: Any, scale: int, dtype: np.dtype, run: '_Run') -> CostVolume:
+        """Return the matching cost volume, into the kept buffer."""
+        cfg = self.config
+        volume = self.backend.cost_volume(pair, cfg.matched_disp, cfg.cost, cfg.window, scale,
+                                          dtype, run.kept.cost, run.cancel)
+        run.lap('cost')
+        return volume
+
+    def _plain_sgm(self, volume: CostVolume, run: '_Run') -> Array:
+        """Return plain SGM's disparity (PLAIN_PATHS, no GCPs), summed into the kept buffer."""
+        b, cfg = self.backend, self.config
+        total = b.aggregate(volume, run.fixed(cfg.p1), run.fixed(cfg.p2), PLAIN_PATHS,
+                            run.kept.total, run.cancel)
+        run.kept = run.kept._replace(total=total)  # the GCPs' SGM then sums into it again
+        plain = b.disparity(total, run.cancel)
+        run.lap('plain_sgm')
+        return plain
+
+    def _refine(self, volume: CostVolume, cnn: CnnConfidence, plain: Array | None,
+                run: '_Run') -> tuple[CostVolume, Array]:
+        """Return the volume refined by the GCPs above theta, and the GCPs."""
+        cfg = self.config
+        refined = self.backend.select_refine(volume, cnn, cfg.theta, run.fixed(cfg.c_hi),
+                                             run.fixed(cfg.c_low), cfg.gcp_lr_check,
+                                             plain if cfg.gcp_plain_check else None)
+        run.lap('refine')
+        return refined
+
+    def _sgm(self, volume: CostVolume, run: '_Run') -> Array:
+        """Return the summed path costs of `volume`; keep both volumes for the next pair."""
+        b, cfg = self.backend, self.config
+        total = b.aggregate(volume, run.fixed(cfg.p1), run.fixed(cfg.p2), cfg.paths,
+                            run.kept.total, run.cancel)
+        b.keep(run.kept._replace(cost=volume.costs, total=total))
+        run.lap('sgm')
+        return total
+
+    def _winners(self, total: Array, run: '_Run') -> Winners:
+        """Return the winner-takes-all of the summed costs, with the median if set."""
+        b = self.backend
+        winners = b.winners(total, self.config.subpixel, run.cancel)
+        if self.config.median:
+            winners = winners._replace(disparity=b.median(winners.disparity))
+        run.lap('wta')
+        return winners
+
+    def _disparity_confidence(self, winners: Winners, cnn: CnnConfidence | None,
+                              gcps: Array | None, run: '_Run') -> Array | None:
+        """Return P(within 3 px) of each winner, None where no fit ships."""
+        if self.fit is None:
+            return None
+        confidence = self.backend.disparity_confidence(self.fit, winners, cnn, gcps)
+        run.lap('disparity_confidence')
+        return confidence
+
+    def _download(self, published: '_Published', run: '_Run') -> '_Published':
+        """Return `published` on the host, in one download."""
+        b = self.backend
+        arrays = b.to_host(*published[:5], *(published.cnn or ()))
+        cnn = CnnConfidence(*arrays[5:]) if published.cnn is not None else None
+        run.lap(None if b.host else 'download')
+        return _Published(*arrays[:5], cnn)
+
+    def _to_matching_grid(self, left: np.ndarray, right: np.ndarray,
+                          reused: CnnConfidence | None, run: '_Run'
+                          ) -> tuple[np.ndarray, np.ndarray, CnnConfidence | None]:
+        """Return the pair binned by `downsample`, and reused CNN outputs taken to its grid."""
+        f = self.config.downsample
+        left, right = bin_area(left, f), bin_area(right, f)
+        if reused is not None:  # undo the upsampling of their run
+            cof_c, cof_d, cof_dr = (subsample(a, f, left.shape) for a in reused)
+            reused = CnnConfidence(cof_c, cof_d // f, cof_dr // f)
+        run.lap('downsample')
+        return left, right, reused
+
+    def _to_input_grid(self, published: '_Published', shape: tuple[int, ...],
+                       run: '_Run') -> '_Published':
+        """Return `published` blown up to the input's `shape`, disparities in its pixels."""
+        f = self.config.downsample
+
+        def up(a: np.ndarray | None, disparity: bool = False) -> np.ndarray | None:
+            """Return `a` at the input's size (None stays None); a disparity times f."""
+            if a is None:
+                return None
+            return upsample(a * a.dtype.type(f) if disparity else a, f, shape)
+
+        cnn = published.cnn
+        if cnn is not None:
+            cnn = CnnConfidence(up(cnn.cof_c), up(cnn.cof_d, True), up(cnn.cof_dr, True))
+        full = _Published(up(published.disparity, True), up(published.consistent),
+                          up(published.margin), up(published.confidence), up(published.gcp),
+                          cnn)
+        run.lap('upsample')
+        return full
+
+
+class _Published(NamedTuple):
+    """What one pair publishes, each (H, W): on the device, then the host (`StereoResult`)."""
+
+    disparity: Any
+    consistent: Any
+    margin: Any
+    confidence: Any  # None where no confidence fit ships
+    gcp: Any  # None without GCPs
+    cnn: CnnConfidence | None  # the CNN's outputs where it ran (or was reused), else None
+
+
+class _Run:
+    """One pair's run: its stage clock, its cancel flag and the buffers and units it uses."""
+
+    def __init__(self, b: Backend, cancel: CancelFlag | None, timed: bool) -> None:
+        """Start the clock; `timed`: wait for the device at each stage's end."""
+        self.backend, self.cancel, self.timed = b, cancel, timed
+        self.seconds: dict[str, float] = {}
+        self.kept = Buffers(None, None, None)
+        self.fixed: Any = None  # a cost-unit value in the volume's units (volume_arithmetic)
+        self._start = time.perf_counter()
+
+    def lap(self, stage: str | None) -> None:
+        """Record the time since the last lap as `stage` (None: only restart the clock)."""
+        if self.timed:
+            self.backend.synchronize()
+        now = time.perf_counter()
+        if stage is not None:
+            self.seconds[stage] = now - self._start
+        self._start = now
+        if self.cancel is not None:
+            self.cancel.check()
+
+
+def _reused_cnn(cnn: Any) -> CnnConfidence | None:
+    """Return `StereoPipeline.__call__`'s `cnn` as a CnnConfidence; ValueError if malformed."""
+    if cnn is None:
+        return None
+    if len(cnn) != 3:
+        raise ValueError('cnn must be (cof_c, cof_d, cof_dr), as StereoResult.cnn holds them')
+    return CnnConfidence(*cnn)
