@@ -3,12 +3,13 @@ The misalignment estimate and its correction on real pairs with known warps.
 
 The right view is warped as a drifting rig would: moved down and rolled about the image's
 centre (cv2.warpAffine, bilinear); the estimate must move by what was applied and the
-correction must undo it. Textureless and dark frames must say they do not know.
+correction must undo it. Textureless, dark and differently exposed pairs must say they do
+not know, or change nothing.
 """
 import cv2
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
-from gcp_stereo_ros.stereo.alignment import correct, estimate, Misalignment, TERMS
+from gcp_stereo_ros.stereo.alignment import correct, estimate, fold, Misalignment, TERMS
 from gcp_stereo_ros.stereo.config import StereoConfig
 from gcp_stereo_ros.stereo.images import gray_pair
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
@@ -54,6 +55,20 @@ def test_the_estimate_moves_by_the_applied_warp(kitti, down, roll):
 def test_the_kitti_pair_itself_is_a_fifth_of_a_pixel_off(kitti):
     m = estimate(kitti[0], kitti[1], 128)
     assert 0.15 < m.term('offset') < 0.4 and m.largest > 0.3
+    assert m.verdict() == 'corrected'
+    errors = dict(zip(TERMS, m.errors))
+    assert 0.003 < errors['offset'] < 0.03 and errors['keystone'] == 0  # not fitted
+    assert m.term('offset') > 3 * errors['offset']
+
+
+def test_a_term_the_data_does_not_support_is_not_used():
+    """The coefficients keep a term only at 3 standard errors; below MIN_CORRECTION: nothing."""
+    m = Misalignment(True, (0.2, 0.3, 0.5, 0, 0, 0), (0.05, 0.2, 0.1, 0, 0, 0), (375, 1242))
+    assert m.coefficients == (0.2, 0.0, 0.5, 0, 0, 0)
+    weak = Misalignment(True, (0.2, 0.3, 0, 0, 0, 0), (0.01, 0.2, 0, 0, 0, 0), (375, 1242))
+    assert weak.largest == pytest.approx(0.2) and 'below' in weak.verdict()
+    right = np.zeros((375, 1242), np.float32)
+    assert correct(right, weak) is right
 
 
 def test_after_the_correction_the_pair_lines_up(kitti):
@@ -91,6 +106,18 @@ def test_other_lighting_in_the_right_view(kitti):
     assert abs(a.left_edge - b.left_edge) < 0.1 and abs(a.right_edge - b.right_edge) < 0.1
 
 
+@pytest.mark.parametrize('gain, known', [(0.25, True), (2.5, True), (4.0, False)])
+def test_a_differently_exposed_pair_changes_nothing(data_dir, gain, known):
+    """Cones (within 0.08 px) with the right view 2 stops darker or blown out: left alone."""
+    frame = load_frame(data_dir, 'middlebury_v2/cones')
+    left, right = frame.left, frame.right
+    exposed = np.clip(np.round(right.astype(np.float32) * gain), 0, 255).astype(np.uint8)
+    m = estimate(left, exposed, frame.max_disp)
+    assert m.known == known
+    assert m.largest < 0.15 if known else m.cause == 'saturated'
+    assert correct(exposed, m) is exposed
+
+
 def test_repetitive_texture_and_a_moving_object(kitti):
     """Stripes pasted out of phase into a fifth of both views, a car moved 4 px: no change."""
     left, right, _ = kitti
@@ -105,8 +132,9 @@ def test_repetitive_texture_and_a_moving_object(kitti):
     assert abs(a.left_edge - b.left_edge) < 0.1 and abs(a.right_edge - b.right_edge) < 0.1
 
 
-@pytest.mark.parametrize('case', ['flat', 'ramp', 'dark', 'black'])
-def test_no_texture_or_a_dark_frame_is_unknown_and_nothing_changes(kitti, case):
+@pytest.mark.parametrize('case, cause', [('flat', 'textureless'), ('ramp', 'textureless'),
+                                         ('dark', 'dark'), ('black', 'dark')])
+def test_no_texture_or_a_dark_frame_is_unknown_and_nothing_changes(kitti, case, cause):
     left, right, _ = kitti
     rng = np.random.default_rng(0)
     h, w = left.shape
@@ -119,8 +147,8 @@ def test_no_texture_or_a_dark_frame_is_unknown_and_nothing_changes(kitti, case):
     else:
         left = right = np.zeros((h, w), np.uint8)
     m = estimate(left, right, 128)
-    assert not m.known and m.reason and m.largest == 0
-    assert m.coefficients == (0.0,) * len(TERMS)
+    assert not m.known and m.reason and m.largest == 0 and m.cause == cause
+    assert m.coefficients == (0.0,) * len(TERMS) and m.verdict().startswith('unknown')
     assert correct(right, m) is right
 
 
@@ -135,16 +163,31 @@ def test_a_darkened_pair_is_measured_or_unknown(kitti):
         assert abs(m.right_edge - truth.right_edge) < 0.1
 
 
-def test_small_misalignment_leaves_the_image_alone(kitti):
+def test_small_or_too_large_misalignment_leaves_the_image_alone(kitti):
     right = kitti[1]
-    m = Misalignment(True, (0.05, 0.03, 0, 0, 0, 0), right.shape, 100, 0.1, 0.01)
+    m = Misalignment(True, (0.05, 0.03, 0, 0, 0, 0), shape=right.shape)
     assert m.largest == pytest.approx(0.08) and correct(right, m) is right
-    moved = correct(right, Misalignment(True, (1.0, 0, 0, 0, 0, 0), right.shape, 100, 0.1, 0.01))
+    moved = correct(right, Misalignment(True, (1.0, 0, 0, 0, 0, 0), shape=right.shape))
     np.testing.assert_allclose(moved[10:-10], right[11:-9], atol=1e-3)
+    far = Misalignment(True, (9.0, 0, 0, 0, 0, 0), shape=right.shape)
+    assert 'too large' in far.verdict() and correct(right, far) is right
+
+
+def test_the_correction_folds_into_rectification_maps(kitti):
+    """One remap through the folded maps gives the corrected image (bilinear, not Lanczos)."""
+    right = kitti[1]
+    m = estimate(kitti[0], warp(right, 1.5, -0.2), 128)
+    h, w = right.shape
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    mx, my = fold(m, x + 0.5, y)  # a rectification that moves the image half a pixel left
+    once = cv2.remap(right, mx, my, cv2.INTER_LINEAR)
+    twice = correct(cv2.remap(right, x + 0.5, y, cv2.INTER_LINEAR), m)
+    inner = (slice(20, -20), slice(20, -20))
+    assert np.abs(once[inner] - twice[inner]).mean() < 1.0  # grey levels, of 0-255
 
 
 def test_the_field_and_its_edges():
-    m = Misalignment(True, (0.5, 1.0, -0.2, 0.1, 0.05, 0.0), (101, 201), 100, 0.1, 0.01)
+    m = Misalignment(True, (0.5, 1.0, -0.2, 0.1, 0.05, 0.0), shape=(101, 201))
     assert m.left_edge == pytest.approx(0.5 - 1.0 + 0.05)
     assert m.right_edge == pytest.approx(0.5 + 1.0 + 0.05)
     assert m.at(200, 100) == pytest.approx(0.5 + 1.0 - 0.2 + 0.1 + 0.05)
@@ -160,4 +203,4 @@ def test_bad_input_says_what_is_wrong(kitti):
     with pytest.raises(ValueError, match='estimated on 1242x375'):
         correct(right[:, :-1], m)
     tiny = estimate(left[:20, :20], right[:20, :20])
-    assert not tiny.known and 'too small' in tiny.reason
+    assert not tiny.known and 'too small' in tiny.reason and tiny.cause == 'small'
