@@ -17,6 +17,8 @@ SAD: mean absolute difference over the window of the per-image standardized inte
 (each image minus its mean, divided by its std), i.e. in units of image standard
 deviations, truncated at 3.2: the paper's range [0, 3.2] without rescaling.
 """
+from typing import Any
+
 from numba import njit, prange
 import numpy as np
 
@@ -55,7 +57,7 @@ def check_window(cost: str, window: int) -> None:
 
 
 @njit(inline='always')
-def _popcount(v):
+def _popcount(v: np.uint64) -> np.uint64:
     v = v - ((v >> _ONE) & _M1)
     v = (v & _M2) + ((v >> np.uint64(2)) & _M2)
     v = (v + (v >> np.uint64(4))) & _M4
@@ -63,7 +65,7 @@ def _popcount(v):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _census_transform(padded, rad):
+def _census_transform(padded: np.ndarray, rad: int) -> np.ndarray:
     """
     Return the bit strings of the image inside `padded` (padded by `rad` on every side).
 
@@ -102,7 +104,8 @@ def census_transform(gray: np.ndarray, window: int = 9) -> np.ndarray:
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _census_cost(cl, cr_rev, ndisp, rad, scale, invalid, out, cancel):
+def _census_cost(cl: np.ndarray, cr_rev: np.ndarray, ndisp: int, rad: int, scale: int,
+                 invalid: Any, out: np.ndarray, cancel: np.ndarray) -> None:
     """`cr_rev`: the right bit strings with each row reversed (see `cost_volume`)."""
     h, w = cl.shape[1], cl.shape[2]
     for y in prange(h):
@@ -126,7 +129,8 @@ def _census_cost(cl, cr_rev, ndisp, rad, scale, invalid, out, cancel):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _sad_cost(left, right_rev, ndisp, rad, scale, invalid, out, cancel):
+def _sad_cost(left: np.ndarray, right_rev: np.ndarray, ndisp: int, rad: int, scale: Any,
+              invalid: Any, out: np.ndarray, cancel: np.ndarray) -> None:
     """`right_rev`: the right image with each row reversed (see `cost_volume`)."""
     h, w = left.shape
     area = np.float32((2 * rad + 1) ** 2)

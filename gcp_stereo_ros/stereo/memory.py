@@ -5,11 +5,12 @@ The pipeline's memory: its volumes' number type, a bound of a pair's need, the a
 allocated); `mmap_large_arrays` sets glibc's allocator as long-running processes use it.
 """
 import ctypes
+from typing import Callable
 
 import numpy as np
 
 from .cnn.filter import scratch_size
-from .config import DOWNSAMPLE
+from .config import DOWNSAMPLE, StereoConfig
 from .cost import max_cost, UINT16_MAX
 from .costs import cost_spec
 from .sgm import directions, path_sum_bound
@@ -17,7 +18,7 @@ from .sgm import directions, path_sum_bound
 MIB = 1 << 20
 
 
-def fixed_point_scale(cfg):
+def fixed_point_scale(cfg: StereoConfig) -> int | None:
     """
     Return the smallest integer s that allows fixed-point uint16 volumes, or None.
 
@@ -39,7 +40,8 @@ def fixed_point_scale(cfg):
     return None
 
 
-def volume_arithmetic(cfg):
+def volume_arithmetic(cfg: StereoConfig
+                      ) -> tuple[int | None, np.dtype, Callable[[float], float]]:
     """
     Return (scale, dtype, fixed) of the pipeline's volumes for `cfg`.
 
@@ -75,7 +77,7 @@ FULL_PIXEL_BYTES = 32
 POST_PIXEL_BYTES = 156
 
 
-def memory_bytes(cfg, height, width):
+def memory_bytes(cfg: StereoConfig, height: int, width: int) -> int:
     """
     Return an upper bound of the memory the pipeline allocates for a pair of this size.
 
@@ -93,7 +95,7 @@ def memory_bytes(cfg, height, width):
     return fixed + per_disparity * cfg.matched_disp
 
 
-def _memory_terms(cfg, height, width):
+def _memory_terms(cfg: StereoConfig, height: int, width: int) -> tuple[int, int]:
     """Return (bytes, bytes per matched disparity) of `memory_bytes`."""
     f = cfg.downsample
     h, w = height // f, width // f
@@ -113,7 +115,7 @@ def _memory_terms(cfg, height, width):
     return max(fixed, POST_PIXEL_BYTES * height * width), per_disparity
 
 
-def check_memory(cfg, height, width):
+def check_memory(cfg: StereoConfig, height: int, width: int) -> None:
     """Raise ValueError if a pair of this size needs more than cfg.memory_limit_mb."""
     fixed, per_disparity = _memory_terms(cfg, height, width)
     need = fixed + per_disparity * cfg.matched_disp  # memory_bytes, from the same terms
@@ -137,7 +139,7 @@ def check_memory(cfg, height, width):
 MMAP_BYTES = 64 * MIB
 
 
-def call_glibc(call, *args):
+def call_glibc(call: str, *args: int) -> None:
     """Call glibc's `call` (mallopt, malloc_trim); no-op without glibc."""
     try:
         getattr(ctypes.CDLL(None), call)(*args)
@@ -145,7 +147,7 @@ def call_glibc(call, *args):
         pass
 
 
-def mmap_large_arrays():
+def mmap_large_arrays() -> None:
     """
     Make glibc's malloc serve blocks of MMAP_BYTES or more with mmap, in this whole process.
 

@@ -307,9 +307,10 @@ class StereoPipeline:
         """Return `published` on the host, in one download."""
         b = self.backend
         arrays = b.to_host(*published[:5], *(published.cnn or ()))
+        disparity, consistent, margin, confidence, gcps = arrays[:5]
         cnn = CnnConfidence(*arrays[5:]) if published.cnn is not None else None
         run.lap(None if b.host else 'download')
-        return _Published(*arrays[:5], cnn)
+        return _Published(disparity, consistent, margin, confidence, gcps, cnn)
 
     def _to_matching_grid(self, left: np.ndarray, right: np.ndarray,
                           reused: CnnConfidence | None, run: '_Run'

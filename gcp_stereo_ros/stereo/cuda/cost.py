@@ -17,7 +17,7 @@ from ..costs import cost_spec
 
 
 @cuda.jit
-def _census_transform(gray, rad, bits):
+def _census_transform(gray: Any, rad: int, bits: Any) -> None:
     """Write the Census bit strings of `gray` (H, W) into `bits` (2, H, W), as cost.py does."""
     h, w = gray.shape
     i = cuda.grid(1)
@@ -45,7 +45,7 @@ def _census_transform(gray, rad, bits):
 
 
 @cuda.jit
-def _census_cost(left, right, rad, scale, invalid, out):
+def _census_cost(left: Any, right: Any, rad: int, scale: int, invalid: Any, out: Any) -> None:
     """Write scale * Hamming(left bits at x, right bits at x - d) into each valid cell."""
     h, w, nd = out.shape
     y, x, valid = _pixel(cuda.grid(1), h, w, nd, rad)
@@ -59,7 +59,7 @@ def _census_cost(left, right, rad, scale, invalid, out):
 
 
 @cuda.jit
-def _sad_cost(left, right, rad, scale, invalid, out):
+def _sad_cost(left: Any, right: Any, rad: int, scale: Any, invalid: Any, out: Any) -> None:
     """Write min(scale * mean |left - right shifted by d| over the window, invalid)."""
     h, w, nd = out.shape
     y, x, valid = _pixel(cuda.grid(1), h, w, nd, rad)
@@ -77,7 +77,7 @@ def _sad_cost(left, right, rad, scale, invalid, out):
 
 
 @njit(inline='always')  # kernels call it (it compiles for a GPU without one)
-def _pixel(i, h, w, nd, rad):
+def _pixel(i: int, h: int, w: int, nd: int, rad: int) -> tuple[int, int, int]:
     """
     Return (y, x) of pixel `i` of an (h, w) image and how many d from 0 are valid there.
 
