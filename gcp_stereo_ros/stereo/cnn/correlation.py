@@ -41,8 +41,8 @@ def _two_columns(f: np.ndarray, x: int, out: np.ndarray, i: int) -> None:
     Write Vol(x, d) into out[i, d] and Vol(x + 1, d) into out[i + 1, d], d < D.
 
     `f`: the unit rows (2, W, C); with x + 1 = W only out[i]. (x, d) and (x + 1, d + 1)
-    read the same right descriptor, loaded once for both: about 1.2x faster than one cell
-    at a time (and the same bits).
+    read the same right descriptor, loaded once for both (the same bits as one cell at a
+    time; the speed: doc/speed.md).
     """
     nd, c, w = out.shape[1], f.shape[2], f.shape[1]
     x1 = min(x + 1, w - 1)

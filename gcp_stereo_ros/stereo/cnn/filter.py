@@ -1,17 +1,16 @@
 """
 The guided filter of the CNN confidence volume, before its best disparities are taken.
 
-The CNN sees a 9x9 patch: alone, its best disparity is wrong by more than 3 px on about a
-sixth of the KITTI pixels (doc/method.md). Filtering each disparity slice Vol(., ., d) with
+The CNN sees a 9x9 patch: alone, its best disparity is often more than 3 px off (doc/method.md,
+"The guided filter of the CNN volume"). Filtering each disparity slice Vol(., ., d) with
 a guided filter (He, Sun, Tang, PAMI 2013; on matching volumes, Rhemann et al., CVPR 2011),
 the left image as the guide, pools the evidence of a (2r + 1)^2 window where the image is
 smooth and stops at its edges. With the filtered volume Vol', cof_c = max_d Vol' and cof_d =
 argmax_d Vol', as `cnn.confidence` takes them from Vol without it; the right view's cof_dr
 stays that of Vol, argmax_d Vol(y, xr + d, d). So `gcp_lr_check` holds the filtered
 disparity against the unfiltered right view: it rejects the GCPs whose disparity the filter
-moved alike in both views, such as a foreground fattened over its background (on the 10
-KITTI 2015 validation frames, with the filtered right view instead, 1.47 % of the pixels
-were published more than 3 px too near, with this one 1.29 %, as unfiltered; doc/method.md).
+moved alike in both views, such as a foreground fattened over its background (what the
+unfiltered right view gains over the filtered one: doc/method.md).
 Per slice, with I the left image standardized (`images.standardize`,
 what the CNN sees), p = Vol(., ., d) and mean() the mean over the window clipped to the image:
 
@@ -36,9 +35,8 @@ import numpy.typing as npt
 
 from .correlation import first_argmax, volume
 
-# Of the guide's variance (1: the image is standardized). On the 14 validation frames a first
-# implementation (windows replicating the image's edge) gave Census+GCP 4.77, 4.76, 4.77 %
-# with 0.001, 0.01, 0.03 (radius 4, P2 128, every pixel published, integer disparities).
+# Of the guide's variance (1: the image is standardized); the error rates of other values:
+# doc/notes/implementation_history.md.
 GUIDE_EPS = 0.01
 # Rows of a band: `box_means` slides its sums down each band and restarts at the next (the
 # threads share the bands), `StripFilter` recomputes its column sums every BAND_ROWS rows (a

@@ -16,10 +16,9 @@ cof_c = max_d Vol and cof_d = argmax_d Vol (first maximum on ties; cells with x 
 have Vol = 0), and the right view's CNN disparity cof_dr(y, xr) = argmax of Vol(y, xr + d, d)
 over d < min(D, W - xr), for GCPs that both views agree on (`gcp.select`). Row y of Vol
 needs only row y of both descriptor images, so both steps run on strips of STRIP_ROWS rows:
-the activations of a strip stay in the CPU caches (measured on a 2-core Zen 4 for a KITTI
-pair when first written: bf16 autocast convolutions 0.79 s for the whole images, 0.54 s in
-strips of 64 rows) and the descriptors of the whole images are never held (2 x 119 MB for
-a KITTI pair in float32).
+the activations of a strip stay in the CPU caches and the descriptors of the whole images
+are never held (2 x 119 MB for a KITTI pair in float32; what the strips saved:
+doc/notes/implementation_history.md).
 On a GPU (`cuda.cnn.device_confidence`) the same strips are correlated in torch on the
 device, as batched matrix products over blocks of columns.
 
@@ -202,8 +201,8 @@ def descriptors(net: GcpNet, x: torch.Tensor, precision: str = 'fp32',
     """
     Return the raw branch output (N, H, W, 64) of a padded input, on the input's device.
 
-    The net runs in channels_last (1.6x faster on CPU than the default layout, and the
-    permute to (N, H, W, 64) is then free), each convolution with its ReLU (`_conv_relu`).
+    The net runs in channels_last (the permute to (N, H, W, 64) is then free; its speed:
+    doc/notes/implementation_history.md), each convolution with its ReLU (`_conv_relu`).
     `precision` (resolved, `resolve_precision`): 'fp32'; 'bf16', the first layer as
     `_first_layer_bf16` and the others in bfloat16 with float32 accumulation; 'int8' (CPU),
     the quantized branch (`cnn.int8.branch`), bfloat16 descriptors. `cancel`: a CancelFlag,
@@ -230,9 +229,9 @@ def _conv_relu(conv: nn.Conv2d, x: torch.Tensor, weight: torch.Tensor, bias: tor
     """
     Return relu(conv2d(x, weight, bias)) with the geometry of `conv`.
 
-    On the CPU as one oneDNN primitive, the ReLU applied to the output as it is written:
-    a separate ReLU was a quarter of the CNN's time with two cores (a pass over each layer's
-    output; doc/speed.md). oneDNN's bfloat16 path needs avx512bw/vl/dq or avx_ne_convert:
+    On the CPU as one oneDNN primitive, the ReLU applied to the output as it is written
+    (no pass of its own over each layer's output; doc/notes/implementation_history.md).
+    oneDNN's bfloat16 path needs avx512bw/vl/dq or avx_ne_convert:
     on other CPUs (AVX2 only) bfloat16 takes torch's plain convolution, emulated and slow
     (precision 'auto' does not pick it there).
     """
@@ -250,11 +249,10 @@ def _first_layer_bf16(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
     Return relu(conv(x)) in bfloat16 with the accuracy of float32 input and weights.
 
     bfloat16 keeps 8 significant bits: rounding the standardized image to it is noise of
-    the size of a gray level's step, different in the two images. With every layer under
-    autocast the defaults' error rates moved by up to 0.15 point on a validation frame; with
-    this first layer (the others in bfloat16) by 0.061 at most, about the noise of any
-    change of rounding (the first layer in float32 gave 0.095; doc/method.md, "bf16"). So
-    x = x_hi + x_lo and w = w_hi + w_lo, each part bfloat16, and
+    the size of a gray level's step, different in the two images, which moves the error
+    rates more than rounding the other layers does (the figures: doc/method.md, "bf16";
+    doc/notes/implementation_history.md). So x = x_hi + x_lo and w = w_hi + w_lo, each part
+    bfloat16, and
     x * w ~ x_hi w_hi + x_lo w_hi + x_hi w_lo (the dropped term is at most about 2^-16 of
     it): one bfloat16 convolution of 3 input channels, accumulated in float32, faster than
     the 1-channel float32 one.
