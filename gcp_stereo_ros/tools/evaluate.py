@@ -79,7 +79,7 @@ def opencv_sgbm(left: np.ndarray, right: np.ndarray, max_disp: int,
         lg, rg = (bin_area(np.asarray(g, np.float32), factor) for g in (lg, rg))
     lg, rg = lg.astype(np.uint8), rg.astype(np.uint8)
     ndisp = -(-int(max_disp) // (16 * factor)) * 16
-    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=ndisp, blockSize=block,
+    sgbm = cv2.StereoSGBM.create(minDisparity=0, numDisparities=ndisp, blockSize=block,
                                  P1=8 * block * block, P2=32 * block * block, disp12MaxDiff=-1,
                                  uniquenessRatio=0, speckleWindowSize=0, mode=mode)
     disp = sgbm.compute(lg, rg).astype(np.float32) * (factor / 16.0)

@@ -221,7 +221,7 @@ def rate(args: argparse.Namespace) -> None:
                 pipe = StereoPipeline(config) if pipe is None else pipe.with_config(config)
                 disp = pipe(frame.left, frame.right).disparity
             rows.append({'mode': name, 'frame': frame.name,
-                         **error_rates(disp, frame.gt, frame.valid)})
+                         **error_rates(disp, frame.gt, frame.valid)})  # type: ignore[arg-type]
     table = [{'mode': name, 'seconds': seconds[name], 'x_3way': seconds[name] / peer,
               **{k: float(np.mean([r[k] for r in rows if r['mode'] == name]))
                  for k in ('bad3', 'density', 'bad3_published')}} for name in modes]
