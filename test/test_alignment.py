@@ -81,19 +81,43 @@ def test_after_the_correction_the_pair_lines_up(kitti):
     assert again.known and again.largest < 0.1
 
 
-def test_the_correction_restores_the_disparity(data_dir):
+def test_the_pipeline_undoes_a_drift_by_default(data_dir):
     """Middlebury cones (a validation frame) moved down 2 px: 3.54 -> 26.2 -> 3.20 % wrong."""
     frame = load_frame(data_dir, 'middlebury_v2/cones')
     pipe = StereoPipeline(StereoConfig(max_disp=frame.max_disp))
+    as_is = pipe.with_config(pipe.config.replace(align='off'))
     left, right = gray_pair(frame.left, frame.right)
-    aligned = error_rates(pipe(left, right).disparity, frame.gt, frame.valid)
+    aligned = error_rates(as_is(left, right).disparity, frame.gt, frame.valid)
     warped = warp(right, 2.0, 0.0)
-    drifted = error_rates(pipe(left, warped).disparity, frame.gt, frame.valid)
-    fixed = correct(warped, estimate(left, warped, frame.max_disp))
-    corrected = error_rates(pipe(left, fixed).disparity, frame.gt, frame.valid)
+    drifted = error_rates(as_is(left, warped).disparity, frame.gt, frame.valid)
+    result = pipe(left, warped)
+    corrected = error_rates(result.disparity, frame.gt, frame.valid)
     assert drifted['bad3'] > aligned['bad3'] + 15
     assert abs(corrected['bad3'] - aligned['bad3']) < 0.5
     assert abs(corrected['density'] - aligned['density']) < 2
+    m = result.misalignment
+    assert m.verdict() == 'corrected' and abs(m.term('offset') - 2 + 0.08) < 0.05
+    assert 'align' in result.seconds and as_is(left, right).misalignment is None
+    assert StereoConfig.for_cost('census', 'paper').align == 'off'
+
+
+@pytest.mark.parametrize('case', ['aligned', 'flat', 'dark'])
+def test_a_pair_it_leaves_alone_gives_the_same_bits(data_dir, case):
+    """A well rectified pair (cones, 0.08 px), a textureless and a dark one: as with 'off'."""
+    frame = load_frame(data_dir, 'middlebury_v2/cones')
+    left, right = gray_pair(frame.left, frame.right)
+    if case == 'flat':
+        left = right = np.full_like(left, 90)
+    elif case == 'dark':
+        rng = np.random.default_rng(1)
+        left, right = (rng.poisson(1.0, left.shape).astype(np.float32) for _ in range(2))
+    config = StereoConfig(max_disp=frame.max_disp, use_gcp=False)
+    result = StereoPipeline(config)(left, right)
+    off = StereoPipeline(config.replace(align='off'))(left, right)
+    np.testing.assert_array_equal(result.disparity, off.disparity)
+    m = result.misalignment
+    assert m.known == (case == 'aligned') and m.verdict() != 'corrected'
+    assert m.cause == {'aligned': '', 'flat': 'textureless', 'dark': 'dark'}[case]
 
 
 def test_other_lighting_in_the_right_view(kitti):

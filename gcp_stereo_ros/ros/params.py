@@ -16,8 +16,10 @@ from pathlib import Path
 
 import yaml
 
+from ..stereo.alignment import MAX_CORRECTION, MIN_CORRECTION
 from ..stereo.config import CHOICES, range_text, RANGES, StereoConfig
 from ..stereo.costs import cost_spec, COSTS
+from ..stereo.drift import BUDGET, ERROR, WARN
 
 NODE_NAME = 'gcp_stereo_node'
 # Parameters every rclpy node declares (a dump holds them); the bag tools leave them out.
@@ -146,6 +148,18 @@ PARAMS = (
     Param('memory_limit_mb', _D.memory_limit_mb,
           'memory budget in MiB of processing one pair: a pair that would need more is '
           'refused, saying what to lower', 'memory_limit_mb'),
+    Param('align', _D.align,
+          "'auto': measure the right view's vertical misalignment (a drifting rig) every few "
+          'frames, smooth it over them and undo it where the data supports it and it reaches '
+          "0.25 px; /diagnostics reports it (doc/alignment.md). 'off': take the pair as it is",
+          'align'),
+    Param('align_warn_px', WARN, '/diagnostics turns WARN (the rig has drifted, recalibrate) '
+          'from a misalignment of this many px', range=(0.0, 100.0, 0.0)),
+    Param('align_error_px', ERROR, '/diagnostics turns ERROR beyond a misalignment of this '
+          'many px, and the node no longer corrects it (too large to correct: recalibrate)',
+          range=(MIN_CORRECTION, MAX_CORRECTION, 0.0)),
+    Param('align_budget', BUDGET, "the misalignment's estimates and corrections take at most "
+          "this share of the frames' time", range=(0.0, 1.0, 0.0)),
     Param('image_transport', 'raw',
           "input images: 'raw' (sensor_msgs/Image) or 'compressed' (sensor_msgs/"
           'CompressedImage, jpeg or png, on <image topic>/compressed)',

@@ -2,10 +2,12 @@
 The one stereo pipeline every caller uses: evaluation, the ROS node and the bag tools.
 
 `StereoPipeline` runs the stages of a `stages.Backend` once, in order, over explicit
-buffers: upload -> CNN confidence -> cost volume -> plain SGM -> GCP selection and
-refinement -> SGM -> winner-takes-all (and median) -> disparity confidence ->
-invalidation (`postprocess`) -> one download of what is published. Its settings are a
-`config.StereoConfig`, its memory is bounded by `memory.memory_bytes`.
+buffers: gray conversion -> alignment (`alignment`: the right view's vertical
+misalignment undone) -> binning (``downsample``) -> upload -> CNN confidence -> cost
+volume -> plain SGM -> GCP selection and refinement -> SGM -> winner-takes-all (and
+median) -> disparity confidence -> invalidation (`postprocess`) -> one download of what is
+published. Its settings are a `config.StereoConfig`, its memory is bounded by
+`memory.memory_bytes`.
 """
 from dataclasses import dataclass
 import time
@@ -13,6 +15,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .alignment import correct, estimate, Misalignment
 from .backend import backend
 from .cancel import CancelFlag
 from .cnn.filter import scratch_size
@@ -61,10 +64,10 @@ class StereoResult:
         int32 (H, W), px: the right view's CNN disparity at each right pixel; None without
         ``use_gcp``.
     seconds : dict
-        Wall time in seconds per stage that ran, in order: 'downsample', 'upload' (GPU),
-        'cnn' and 'confidence' (the CNN and its correlation), 'cost', 'plain_sgm',
-        'refine', 'sgm', 'wta', 'disparity_confidence', 'invalidate', 'download' (GPU),
-        'upsample'.
+        Wall time in seconds per stage that ran, in order: 'align' (estimate and
+        correction), 'downsample', 'upload' (GPU), 'cnn' and 'confidence' (the CNN and its
+        correlation), 'cost', 'plain_sgm', 'refine', 'sgm', 'wta', 'disparity_confidence',
+        'invalidate', 'download' (GPU), 'upsample'.
     disparity_confidence : numpy.ndarray or None
         float32 (H, W) in [0, 1]: P(the published disparity within 3 px of the truth), 0
         where the disparity is NaN; None where no fit ships for the method and weights.
@@ -73,6 +76,10 @@ class StereoResult:
         whether or not ``lr_check`` invalidates by it.
     margin : numpy.ndarray
         float32 (H, W) in [0, 1]: the SGM cost margin 1 - S(winner) / S(rival).
+    misalignment : Misalignment or None
+        With ``align`` 'auto': the right view's vertical misalignment v(x, y) over the
+        (H, W) image (estimated on this pair, or the one given), known or not and why; its
+        ``verdict()`` says whether the pair was corrected. None with 'off'.
 
     """
 
@@ -85,6 +92,7 @@ class StereoResult:
     disparity_confidence: np.ndarray | None = None
     consistent: np.ndarray | None = None
     margin: np.ndarray | None = None
+    misalignment: Misalignment | None = None
 
     @property
     def cnn(self) -> CnnConfidence | None:
@@ -149,7 +157,8 @@ class StereoPipeline:
     def __call__(self, left: np.ndarray, right: np.ndarray, cnn: CnnConfidence | None = None,
                  cancel: CancelFlag | None = None,
                  camera: tuple[float, float] | None = None,
-                 timed: bool = False) -> StereoResult:
+                 timed: bool = False, misalignment: Misalignment | None = None
+                 ) -> StereoResult:
         """
         Return the `StereoResult` of one rectified pair.
 
@@ -174,6 +183,10 @@ class StereoPipeline:
             Wait for the device at each stage's end, so that `StereoResult.seconds` holds
             each stage's device time (the bench); else a GPU's stages overlap the host and
             only their sum is the pair's time. The CPU's stages are timed either way.
+        misalignment : Misalignment, optional
+            With ``align`` 'auto', the misalignment to undo instead of estimating this
+            pair's (the node's, smoothed over frames); `alignment.correct` decides whether
+            it is (an unknown one: the pair stays as it is). Ignored with 'off'.
 
         Returns
         -------
@@ -195,6 +208,8 @@ class StereoPipeline:
         left, right = gray_pair(left, right)
         check_memory(cfg, *left.shape)
         shape = left.shape
+        if cfg.align != 'off':
+            right, misalignment = self._align(left, right, misalignment, run)
         if cfg.downsample > 1:
             left, right, reused = self._to_matching_grid(left, right, reused, run)
         published = self._match(left, right, reused, camera, run)
@@ -207,7 +222,17 @@ class StereoPipeline:
         return StereoResult(disparity=published.disparity, gcp=published.gcp, cof_c=cof_c,
                             cof_d=cof_d, cof_dr=cof_dr, seconds=run.seconds,
                             disparity_confidence=published.confidence,
-                            consistent=published.consistent, margin=published.margin)
+                            consistent=published.consistent, margin=published.margin,
+                            misalignment=misalignment if cfg.align != 'off' else None)
+
+    def _align(self, left: np.ndarray, right: np.ndarray, given: Misalignment | None,
+               run: '_Run') -> tuple[np.ndarray, Misalignment]:
+        """Return the right image with the misalignment undone where it is, and the estimate."""
+        run.lap(None)
+        found = given if given is not None else estimate(left, right, self.config.max_disp)
+        right = np.asarray(correct(right, found))
+        run.lap('align')
+        return right, found
 
     def _match(self, left: np.ndarray, right: np.ndarray, reused: CnnConfidence | None,
                camera: tuple[float, float] | None, run: '_Run') -> '_Published':
