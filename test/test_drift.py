@@ -10,7 +10,7 @@ import time
 import cv2
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.stereo.alignment import estimate, Misalignment
-from gcp_stereo_ros.stereo.drift import Background, Cadence, DriftTracker, ERROR, WARN
+from gcp_stereo_ros.stereo.drift import Background, Cadence, DriftTracker, ERROR, Monitor, WARN
 import numpy as np
 import pytest
 
@@ -26,14 +26,14 @@ def known(offset, roll=0.0, error=0.02):
 def test_the_estimates_are_weighed_by_their_errors():
     t = DriftTracker()
     assert not t.current.known and t.status().px is None
-    assert t.status().message == 'unknown: no estimate yet' and t.correction() is None
+    assert t.status().message == 'unknown: no estimate yet' and not t.correction().known
     for _ in range(5):
         t.update(known(0.6))
     t.update(known(0.9, error=0.3))  # unsure: moves it by a few hundredths only
     assert 0.6 < t.current.term('offset') < 0.62
     t.update(known(0.7))  # as sure as the others: pulls it the more
     assert 0.63 < t.current.term('offset') < 0.66
-    assert t.current.errors[0] < 0.02 and t.correction() is not None
+    assert t.current.errors[0] < 0.02 and t.correction().known
 
 
 def test_a_single_wrong_estimate_changes_nothing_and_a_jump_restarts():
@@ -67,7 +67,7 @@ def test_the_levels(offset, level, corrected):
     t = DriftTracker()
     t.update(known(offset))
     assert t.status().level == level and t.status().px == pytest.approx(offset)
-    assert (t.correction() is not None) == corrected
+    assert t.correction().known == corrected
 
 
 def test_the_cadence_keeps_the_estimates_within_their_share():
@@ -111,6 +111,30 @@ def test_the_background_thread_gives_the_estimate(cones):
         assert m == estimate(cones.left, cones.right, cones.max_disp) and 0 < seconds < 30
     finally:
         b.close()
+
+
+def test_the_monitor_estimates_in_the_background_and_corrects(cones):
+    """Cones moved 2 px down: the first pairs go as they are, then corrected; 'off': None."""
+    from gcp_stereo_ros.stereo.config import StereoConfig
+    config = StereoConfig(max_disp=cones.max_disp)
+    moved = drift(cones.right, 2.0, 0.0)
+    m = Monitor()
+    try:
+        first = m.before(cones.left, moved, config, {})
+        assert not first.known and m.status().message == 'unknown: no estimate yet'
+        deadline = time.monotonic() + 30
+        while not m.tracker.estimates and time.monotonic() < deadline:
+            m.after(0.0)
+            time.sleep(0.05)
+            given = m.before(cones.left, moved, config, {'align_warn_px': 1.5})
+        assert given.known and abs(given.term('offset') - 1.92) < 0.05
+        assert m.status().level == 'WARN' and 'the rig has drifted' in m.status().message
+        assert m.before(cones.left, moved, config.replace(align='off'), {}) is None
+        assert m.status().message == 'align is off'
+    finally:
+        m.close()
+    inline = Monitor(every=True)
+    assert inline.before(cones.left, moved, config, {}).known and inline.tracker.estimates == 1
 
 
 def drift(right, down, roll_deg):

@@ -122,10 +122,10 @@ def test_a_black_then_frozen_right_view_is_warned_and_named_within_ten_pairs(har
     assert 0.5 < float(got['published share of valid window']) < 1
     assert float(got['published share of valid window, running level']) > 0.5
     assert (got['view check'], got['cause']) == ('ok', '')
-    assert got['misalignment px'] == 'unknown (not estimated)'
+    assert float(got['misalignment px']) < 0.25  # Motorcycle: aligned (stereo/drift.py)
     progress = [m for m in harness.error_logs('INFO') if 'pairs processed' in m]
     assert len(progress) == 1 and progress[0].startswith(
-        '10 pairs processed; last 10: ms per stage cost '), progress
+        '10 pairs processed; last 10: ms per stage align 0, cost '), progress
     assert 'dropped stale 0, unmatched left 0 right 0, errors 0' in progress[0]
     for n in range(1, 11):
         status = send(good(10 + n)[0], np.zeros_like(right))

@@ -131,6 +131,10 @@ class Diagnostics:
             message = f'{totals.errors - last.totals.errors} pair(s) skipped: {totals.last_error}'
         elif trust.warning:
             level, message = DiagnosticStatus.WARN, trust.warning
+        drift = node.drift.status()  # the misalignment's level (stereo/drift.py)
+        if drift.level == 'ERROR' or (drift.level == 'WARN' and level == DiagnosticStatus.OK):
+            level = getattr(DiagnosticStatus, drift.level)
+            message = f'right view misaligned by {drift.message}'
         return DiagnosticStatus(
             level=level, name=f'{node.get_name()}: stereo', message=message, hardware_id='',
             values=[KeyValue(key=k, value=v) for k, v in values.items()])

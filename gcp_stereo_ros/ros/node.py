@@ -50,6 +50,7 @@ from .stats import NodeStats, Sample
 from .stereo_input import StereoInput
 from .worker import NewestWorker
 from ..stereo.cancel import CancelFlag, Cancelled
+from ..stereo.drift import Monitor
 from ..stereo.health import published, ViewCheck
 from ..stereo.pipeline import StereoPipeline
 from ..stereo.postprocess import valid_window
@@ -115,6 +116,7 @@ class GcpStereoNode(Node):
         self._rectifier = Rectifier()
         self._warned = set()
         self._views = ViewCheck()
+        self.drift = Monitor()  # the right view's misalignment, on its cadence (alignment.md)
         self._logged = (time.monotonic(), 0, self.stats.totals())  # at the last progress log
         self.diagnostics = Diagnostics(self)
         self.active = True
@@ -128,6 +130,7 @@ class GcpStereoNode(Node):
         for pub in self._pubs.values():
             self.destroy_publisher(pub)
         self.diagnostics.close()
+        self.drift.close()
         self._cancel = None
         self.active = False
 
@@ -213,7 +216,10 @@ class GcpStereoNode(Node):
                 left, right = (self._rectifier(side, info[side], image, topics[side])
                                for side, image in (('left', left), ('right', right)))
             model, why = camera_model(info, left.shape, pipeline.config)
-            result = pipeline(left, right, cancel=self._cancel, camera=depth_scale(model))
+            align = self.drift.before(left, right, pipeline.config, values)
+            result = pipeline(left, right, cancel=self._cancel, camera=depth_scale(model),
+                              misalignment=align)
+            self.drift.after(result.seconds.get('align', 0.0))
         except Cancelled:
             return  # shutting down
         except Exception as err:  # bad input or a pair over memory_limit_mb: say why
@@ -230,9 +236,10 @@ class GcpStereoNode(Node):
         now = self.get_clock().now().nanoseconds  # 0: use_sim_time and no /clock yet
         share, confidence = published(result.disparity, result.disparity_confidence,
                                       valid_window(pipeline.config, result.disparity.shape))
+        drift = self.drift.status()
         self.stats.pair_done(Sample(time.monotonic(), (now - stamp) / 1e9 if now else None,
-                                    share, confidence, self._views(left, right)),
-                             result.seconds)
+                                    share, confidence, self._views(left, right), drift.px,
+                                    drift.message), result.seconds)
         self._log_progress()
 
     def _publish(self, header, result, config, info, model, why, left, topics, values):

@@ -6,16 +6,21 @@ each term's mean weighted by the inverse of its variance, older estimates fading
 when the rig jumps; it says which correction to apply and its level (OK, WARN, ERROR).
 `Cadence` says when the next estimate is due so that the alignment costs at most a share of
 the frames' time, and `Background` runs the estimates on a thread of their own so that the
-frames never wait for one (nor does a GPU). ROS-free; the manual's page is doc/alignment.md.
+frames never wait for one (nor does a GPU). `Monitor` is the three as the node and the bag
+tool use them. ROS-free; the manual's page is doc/alignment.md.
 """
+from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+import threading
 import time
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from .alignment import basis, estimate, grid, MAX_CORRECTION, MIN_CORRECTION, Misalignment, TERMS
+from .config import StereoConfig
 
 MEMORY = 5.0  # estimates: an estimate's weight falls by 1 / MEMORY at each newer one
 FLOOR = 0.02  # px, added in quadrature to each term's standard error (scene-to-scene spread)
@@ -122,10 +127,13 @@ class DriftTracker:
         return Misalignment(True, tuple(map(float, fitted)), tuple(map(float, errors)),
                             self._shape, matches=self.estimates)
 
-    def correction(self) -> Misalignment | None:
-        """Return the estimate to correct the pair with, None when nothing is to be done."""
+    def correction(self) -> Misalignment:
+        """Return the estimate to correct the pair with; an unknown one saying why not."""
         m = self.current
-        return m if m.verdict(self.min_correction, self.error) == 'corrected' else None
+        verdict = m.verdict(self.min_correction, self.error)
+        if verdict == 'corrected':
+            return m
+        return Misalignment(False, shape=m.shape, reason=verdict, cause='none')
 
     def status(self) -> DriftStatus:
         """Return the level of the smoothed misalignment: OK, WARN from `warn`, ERROR."""
@@ -218,3 +226,67 @@ def _timed(left: npt.ArrayLike, right: npt.ArrayLike, max_disp: int
     t = time.perf_counter()
     m = estimate(left, right, max_disp)
     return m, time.perf_counter() - t
+
+
+class Monitor:
+    """
+    The alignment of a stream of pairs, as the node runs it: estimated, smoothed, applied.
+
+    `before` each pair collects a finished estimate, starts the next when the `Cadence`
+    lets it (on the `Background` thread, or inline with `every`: each pair, as the bag
+    tool does) and returns the correction for the pipeline; `after` counts the pair's
+    time. `status` may be read from another thread.
+    """
+
+    def __init__(self, every: bool = False) -> None:
+        """Make a monitor; `every`: estimate every pair, inline (deterministic)."""
+        self.tracker = DriftTracker()
+        self.cadence = Cadence()
+        self.background = None if every else Background()
+        self.on = True  # the config's align is 'auto'
+        self._lock = threading.Lock()
+        self._start = time.perf_counter()
+
+    def before(self, left: npt.ArrayLike, right: npt.ArrayLike, config: StereoConfig,
+               values: Mapping[str, Any]) -> Misalignment | None:
+        """
+        Return the misalignment the pipeline is to undo in this pair (None with align 'off').
+
+        `values`: the node's parameters (align_warn_px, align_error_px, align_budget; the
+        module's constants where missing).
+        """
+        self._start = time.perf_counter()
+        self.on = config.align != 'off'
+        if not self.on:
+            return None
+        t = self.tracker
+        t.warn, t.error = values.get('align_warn_px', WARN), values.get('align_error_px', ERROR)
+        self.cadence.budget = values.get('align_budget', BUDGET)
+        done = None
+        if self.background is None:
+            done = _timed(left, right, config.max_disp)
+        else:
+            done = self.background.collect()
+            if self.cadence.due():
+                self.background.submit(left, right, config.max_disp)
+        with self._lock:
+            if done is not None:
+                t.update(done[0])
+                self.cadence.spent(done[1])
+            return t.correction()
+
+    def after(self, align_seconds: float) -> None:
+        """Count the pair since `before`, of which the correction took `align_seconds`."""
+        self.cadence.frame(time.perf_counter() - self._start, align_seconds)
+
+    def status(self) -> DriftStatus:
+        """Return the smoothed misalignment's level ('OK', None px with align 'off')."""
+        if not self.on:
+            return DriftStatus('OK', None, 'align is off')
+        with self._lock:
+            return self.tracker.status()
+
+    def close(self) -> None:
+        """Stop the background thread."""
+        if self.background is not None:
+            self.background.close()
