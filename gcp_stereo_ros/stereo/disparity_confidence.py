@@ -52,7 +52,7 @@ def features(disp: np.ndarray, consistent: np.ndarray, m: np.ndarray, cof_c: np.
     Return the features of each pixel, float32 (len(CONFIDENCE_FEATURES), H, W).
 
     `m`: the `margin`; `cof_c`, `cof_d`, `gcp` None without GCPs. Each plane is written in
-    place (stacking them afterwards is slower).
+    place (why: doc/notes/implementation_history.md).
     """
     planes = np.zeros((len(CONFIDENCE_FEATURES), *disp.shape), np.float32)
     (cnn, on_gcp, agrees, margin_, sqrt_margin, lr, lr_around, margin_around, spread, above,

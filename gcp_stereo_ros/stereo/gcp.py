@@ -76,7 +76,7 @@ def refine(cost: np.ndarray, gcp: np.ndarray, cof_d: np.ndarray, c_hi: float, c_
     return cost
 
 
-def levels(dtype: np.dtype, c_hi: float, c_low: float) -> tuple[np.generic, np.generic]:
+def levels(dtype: np.dtype, c_hi: float, c_low: float) -> tuple[Any, Any]:
     """
     Return C_hi and C_low as `dtype` scalars.
 

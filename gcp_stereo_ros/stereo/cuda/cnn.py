@@ -9,6 +9,7 @@ volume, with its halo of rows, is guided-filtered first (`filtered_best`, the tw
 `cnn.filter.filtered_best`). The results equal `cnn.confidence`'s within float rounding:
 float32 work runs in IEEE float32 (`ieee_float32`), never TF32.
 """
+from collections.abc import Iterator
 from contextlib import contextmanager
 import time
 
@@ -16,13 +17,14 @@ import torch
 import torch.nn.functional as F
 
 from ..cnn import filter as cnn_filter
-from ..cnn.network import calibrated, descriptors, EPS, PAD, resolve_precision, STRIP_ROWS
+from ..cnn.network import (calibrated, descriptors, EPS, GcpNet, PAD, resolve_precision,
+                           STRIP_ROWS)
 from ..cost import check_max_disp
 
 BAND_BLOCK = 128  # columns per block of `_band_volume`
 
 
-def _band_volume(fa, fb, max_disp):
+def _band_volume(fa: torch.Tensor, fb: torch.Tensor, max_disp: int) -> torch.Tensor:
     """
     Return Vol(r, x, d) = <fa[r, x], fb[r, x - d]>, d < max_disp, as (R, W, max_disp).
 
@@ -43,14 +45,15 @@ def _band_volume(fa, fb, max_disp):
     return vol.clamp_(max=1.0)
 
 
-def _band_best(fa, fb, max_disp):
+def _band_best(fa: torch.Tensor, fb: torch.Tensor, max_disp: int
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """Return max_d and first argmax_d of `_band_volume`, (R, W) each."""
     vol = _band_volume(fa, fb, max_disp)
     return vol.amax(2), vol.argmax(2)  # argmax: the first maximum
 
 
 @contextmanager
-def ieee_float32():
+def ieee_float32() -> Iterator[None]:
     """
     Run float32 convolutions and matrix products in IEEE float32 for the duration.
 
@@ -71,7 +74,9 @@ def ieee_float32():
             b.fp32_precision = precision
 
 
-def device_confidence(net, x, max_disp, precision='fp32', seconds=None, radius=0):
+def device_confidence(net: GcpNet, x: torch.Tensor, max_disp: int, precision: str = 'fp32',
+                      seconds: dict[str, float] | None = None, radius: int = 0
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """
     Return `cnn.confidence`'s (cof_c, cof_d, cof_dr) as tensors on the device of `x`.
 
@@ -90,7 +95,7 @@ def device_confidence(net, x, max_disp, precision='fp32', seconds=None, radius=0
     guide = x[0, 0, PAD:PAD + h, PAD:PAD + w]
     timed = seconds is not None
     for stage in ('cnn', 'confidence') if timed else ():
-        seconds.setdefault(stage, 0.0)
+        seconds.setdefault(stage, 0.0)  # type: ignore[union-attr]  # timed: not None
     with torch.inference_mode(), ieee_float32():
         for y0 in range(0, h, STRIP_ROWS):
             y1 = min(y0 + STRIP_ROWS, h)
@@ -110,17 +115,17 @@ def device_confidence(net, x, max_disp, precision='fp32', seconds=None, radius=0
                 cof_dr[y0:y1] = _band_best(f[1].flip(1), f[0].flip(1), int(max_disp))[1].flip(1)
             if timed:
                 _synchronize(x.device)
-                seconds['cnn'] += t1 - t
-                seconds['confidence'] += time.perf_counter() - t1
+                seconds['cnn'] += t1 - t  # type: ignore[index]
+                seconds['confidence'] += time.perf_counter() - t1  # type: ignore[index]
     return calibrated(net, cof_c, radius), cof_d, cof_dr
 
 
-def _synchronize(device):
+def _synchronize(device: torch.device) -> None:
     if device.type == 'cuda':
         torch.cuda.synchronize(device)
 
 
-def _means(x, radius):
+def _means(x: torch.Tensor, radius: int) -> torch.Tensor:
     """
     Return the window means of x (..., rows, W), each window clipped to x (`cnn.filter`).
 
@@ -132,7 +137,8 @@ def _means(x, radius):
     return F.avg_pool2d(x, (1, k), stride=1, padding=(0, radius), count_include_pad=False)
 
 
-def filtered_best(vol, guide, radius, first, rows):
+def filtered_best(vol: torch.Tensor, guide: torch.Tensor, radius: int, first: int, rows: int
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """
     Return (cof_c, cof_d, cof_dr) of a strip, the torch twin of `cnn.filter.filtered_best`.
 

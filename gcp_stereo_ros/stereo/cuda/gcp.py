@@ -8,8 +8,9 @@ from ..gcp import levels
 
 
 @cuda.jit
-def _select_refine(cost, cof_c, cof_d, cof_dr, plain, theta, lr_check, plain_check, c_hi, c_low,
-                   gcp):
+def _select_refine(cost: gpu.DeviceArray, cof_c: gpu.DeviceArray, cof_d: gpu.DeviceArray,
+                   cof_dr: gpu.DeviceArray, plain: gpu.DeviceArray, theta: float, lr_check: bool,
+                   plain_check: bool, c_hi: float, c_low: float, gcp: gpu.DeviceArray) -> None:
     """One thread per pixel: the GCP rule of `gcp.select`, then the refinement of `refine`."""
     h, w, nd = cost.shape
     i = cuda.grid(1)
@@ -31,7 +32,9 @@ def _select_refine(cost, cof_c, cof_d, cof_dr, plain, theta, lr_check, plain_che
             cost[y, x, k] = c_hi
 
 
-def select_refine(cost, cof_c, cof_d, cof_dr, theta, c_hi, c_low, lr_check=False, plain=None):
+def select_refine(cost: torch.Tensor, cof_c: torch.Tensor, cof_d: torch.Tensor,
+                  cof_dr: torch.Tensor, theta: float, c_hi: float, c_low: float,
+                  lr_check: bool = False, plain: torch.Tensor | None = None) -> torch.Tensor:
     """
     Refine `cost` in place with the GCPs `gcp.select` picks; return the GCP mask.
 

@@ -8,7 +8,9 @@ synchronization. Under Numba's CUDA simulator (NUMBA_ENABLE_CUDASIM=1 in the env
 before numba.cuda is first imported; the tests use it) the same kernels run in Python
 threads on the CPU, on CPU tensors: slow, for small crops only.
 """
+from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import numba
 import numpy as np
@@ -22,18 +24,22 @@ except ImportError:  # numba-cuda is an optional extra
 MISSING = ("device 'cuda' needs numba-cuda, an optional extra of this package: "
            "pip install 'gcp_stereo_ros[cuda]' (and a CUDA build of torch), or use device 'cpu'")
 
-SIMULATED = bool(numba.config.ENABLE_CUDASIM)
+SIMULATED = bool(numba.config.ENABLE_CUDASIM)  # type: ignore[attr-defined]
 THREADS = 128  # threads per block of every launch
 # numpy type -> torch type of the volumes (cost.volume_type)
-VOLUME_TYPES = {np.dtype(np.float32): torch.float32, np.dtype(np.uint16): torch.uint16}
+VOLUME_TYPES: dict[np.dtype, Any] = {np.dtype(np.float32): torch.float32,
+                                     np.dtype(np.uint16): torch.uint16}
+# What a kernel takes for a tensor (`view`): a numba-cuda device array, a numpy array when
+# simulated; also the kernels' own local and shared arrays.
+DeviceArray = Any
 
 
-def index(device):
+def index(device: str) -> int:
     """Return N of 'cuda:N' (0 for 'cuda')."""
     return int(device.partition(':')[2] or 0)
 
 
-def check_device(device):
+def check_device(device: str) -> None:
     """Raise ValueError unless numba-cuda and torch can both use the GPU `device` names."""
     n = index(device)
     if cuda is None:
@@ -54,13 +60,13 @@ def check_device(device):
         raise ValueError(f'device {device!r}: there are {torch.cuda.device_count()} CUDA GPUs')
 
 
-def torch_device(device):
+def torch_device(device: str) -> torch.device:
     """Return the torch device of the CUDA pipeline on `device` (the CPU when simulated)."""
     return torch.device('cpu') if SIMULATED else torch.device('cuda', index(device))
 
 
 @contextmanager
-def current(device):
+def current(device: str) -> Iterator[None]:
     """Make `device` the current GPU of numba-cuda and torch for the duration."""
     if SIMULATED:
         yield
@@ -69,33 +75,35 @@ def current(device):
         yield
 
 
-def numpy_type(volume):
+def numpy_type(volume: torch.Tensor) -> np.dtype:
     """Return the numpy dtype of a volume tensor."""
     return next(k for k, v in VOLUME_TYPES.items() if v == volume.dtype)
 
 
-def view(tensor):
+def view(tensor: torch.Tensor) -> DeviceArray:
     """Return what a kernel takes for `tensor`: a view, no copy."""
     # No synchronization: torch and the kernels share the default stream, which orders them.
     return tensor.numpy() if SIMULATED else cuda.as_cuda_array(tensor, sync=False)
 
 
-def launch(kernel, n, *args):
+def launch(kernel: Any, n: int, *args: Any) -> None:
     """Run `kernel` on at least `n` threads (a 1-D grid); tensors among `args` as views."""
     launch_blocks(kernel, -(-n // THREADS), THREADS, 0, *args)
 
 
-def launch_blocks(kernel, blocks, block, shared, *args):
+def launch_blocks(kernel: Any, blocks: int, block: int | tuple[int, ...], shared: int,
+                  *args: Any) -> None:
     """
     Run `kernel` on `blocks` blocks of shape `block` with `shared` bytes of dynamic memory.
 
     Tensors among `args` are passed as views.
     """
-    args = [view(a) if isinstance(a, torch.Tensor) else a for a in args]
+    args = [view(a) if isinstance(a, torch.Tensor) else a  # type: ignore[assignment]
+            for a in args]
     kernel[max(1, blocks), block, 0, shared](*args)
 
 
-def synchronize():
+def synchronize() -> None:
     """Wait for the GPU's work so far (for stage timings)."""
     if not SIMULATED:
         cuda.synchronize()

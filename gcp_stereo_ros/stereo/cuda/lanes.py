@@ -26,23 +26,24 @@ WARP = 32  # the most lanes a group has
 THREADS = gpu.THREADS  # per block: THREADS // lanes groups
 
 
-def lanes(nd):
+def lanes(nd: int) -> int:
     """Return the threads a path (or a WTA pixel) of D = `nd` disparities gets: 8, 16 or 32."""
     return min(WARP, max(8, 1 << (nd - 1).bit_length()))
 
 
-def per_lane(nd):
+def per_lane(nd: int) -> int:
     """Return the disparities each lane holds for D = `nd`: D / lanes(D), rounded up."""
     return -(-nd // lanes(nd))
 
 
-if numba.config.ENABLE_CUDASIM:
-    def exchange_bytes(k):
+if numba.config.ENABLE_CUDASIM:  # type: ignore[attr-defined]
+    def exchange_bytes(k: int) -> int:
         """Return the dynamic shared memory (bytes) a block of `exchange` over k values needs."""
         return 4 * 2 * THREADS * (k + 1)  # two steps (parity) of each thread's k values and low
 
     @cuda.jit(device=True)
-    def exchange(values, low, lane, nl, step, above, below):
+    def exchange(values: gpu.DeviceArray, low: float, lane: int, nl: int, step: int,
+                 above: gpu.DeviceArray, below: gpu.DeviceArray) -> float:
         """
         Set above[i], below[i] to values[i] of lane (lane -+ 1) mod nl; return the lanes' min low.
 
@@ -68,7 +69,7 @@ if numba.config.ENABLE_CUDASIM:
         return low
 
     @cuda.jit(device=True)
-    def lanes_argmin(low, at, lane, nl, step):
+    def lanes_argmin(low: float, at: int, lane: int, nl: int, step: int) -> tuple[float, int]:
         """
         Return (v, a): the least (low, at) of the group's lanes, the least `at` among ties.
 
@@ -86,14 +87,14 @@ if numba.config.ENABLE_CUDASIM:
                 low, at = v, a
         return low, at
 else:
-    def exchange_bytes(k):
+    def exchange_bytes(k: int) -> int:
         """Return the dynamic shared memory a block of `exchange` needs: none (shuffles)."""
         return 0
 
     # njit, inlined into the kernels: it types and compiles for a GPU without one (a
     # cuda.jit device function asks for the current device when a kernel calling it compiles)
     @njit(inline='always')
-    def _mask(lane, nl):
+    def _mask(lane: int, nl: int) -> tuple[int, int]:
         """Return (the group's first lane in its warp, the group's lanes as a warp mask)."""
         if nl == WARP:  # the whole warp: a constant mask makes the convergence check cheaper
             return 0, 0xFFFFFFFF
@@ -101,7 +102,8 @@ else:
         return first, ((1 << nl) - 1) << first
 
     @njit(inline='always')
-    def exchange(values, low, lane, nl, step, above, below):
+    def exchange(values: gpu.DeviceArray, low: float, lane: int, nl: int, step: int,
+                 above: gpu.DeviceArray, below: gpu.DeviceArray) -> float:
         """
         Set above[i], below[i] to values[i] of lane (lane -+ 1) mod nl; return the lanes' min low.
 
@@ -121,7 +123,7 @@ else:
         return low
 
     @njit(inline='always')
-    def lanes_argmin(low, at, lane, nl, step):
+    def lanes_argmin(low: float, at: int, lane: int, nl: int, step: int) -> tuple[float, int]:
         """Return (v, a): the least (low, at) of the group's lanes, the least `at` among ties."""
         mask = _mask(lane, nl)[1]
         span = nl // 2

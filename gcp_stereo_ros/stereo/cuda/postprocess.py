@@ -20,18 +20,19 @@ import numpy as np
 import torch
 
 from . import gpu
+from ..config import StereoConfig
 from ..postprocess import depth_limits, inside, SPECKLE_SCALE
 
 INVALID = -SPECKLE_SCALE  # filterSpeckles' newVal: -1 px in its fixed point
 NAN = float('nan')
 
 
-def _threshold(value):
+def _threshold(value: float) -> float:
     """Return `value` rounded to float32, as numpy compares a float32 array with it."""
     return float(np.float32(value))
 
 
-def cut_short(disp, cfg):
+def cut_short(disp: torch.Tensor, cfg: StereoConfig) -> torch.Tensor:
     """Return `postprocess.cut_short` of a device disparity, bool (h, w)."""
     x0, y0, x1, y1 = inside(cfg.window // 2, disp.shape)
     out = torch.ones(disp.shape, dtype=torch.bool, device=disp.device)
@@ -42,7 +43,7 @@ def cut_short(disp, cfg):
 
 
 @cuda.jit
-def _fill_rows(d):
+def _fill_rows(d: gpu.DeviceArray) -> None:
     """One thread per row y: `postprocess.fill_rows` of d[y], in place."""
     h, w = d.shape
     y = cuda.grid(1)
@@ -63,7 +64,7 @@ def _fill_rows(d):
             d[y, k] = d[y, last]
 
 
-def backgrounds(disp, low):
+def backgrounds(disp: torch.Tensor, low: torch.Tensor) -> torch.Tensor:
     """Return `postprocess.backgrounds` of device tensors, float32 (h, w)."""
     out = torch.where(low, NAN, disp).contiguous()
     gpu.launch(_fill_rows, out.shape[0], out)
@@ -71,7 +72,9 @@ def backgrounds(disp, low):
 
 
 @cuda.jit
-def _background_fits(low, at, won, total, top, ratio, fits):
+def _background_fits(low: gpu.DeviceArray, at: gpu.DeviceArray, won: gpu.DeviceArray,
+                     total: gpu.DeviceArray, top: int, ratio: float, fits: gpu.DeviceArray
+                     ) -> None:
     """
     One thread per pixel: fits = low, but where a background's costs rule it out.
 
@@ -97,7 +100,8 @@ def _background_fits(low, at, won, total, top, ratio, fits):
     fits[y, x] = fit
 
 
-def background_fits(disp, low, total, cfg):
+def background_fits(disp: torch.Tensor, low: torch.Tensor, total: torch.Tensor,
+                    cfg: StereoConfig) -> torch.Tensor:
     """Return `postprocess.background_fits` of device tensors, reading `total` (h, w, D)."""
     fits = torch.empty_like(low)
     at = torch.round(backgrounds(disp, low))  # half to even, as np.rint
@@ -107,7 +111,7 @@ def background_fits(disp, low, total, cfg):
 
 
 @cuda.jit
-def _links(fixed, max_diff, label):
+def _links(fixed: gpu.DeviceArray, max_diff: int, label: gpu.DeviceArray) -> None:
     """
     One thread per pixel: join its tree to those of its right and lower neighbours.
 
@@ -145,7 +149,7 @@ def _links(fixed, max_diff, label):
 
 
 @cuda.jit
-def _sizes(label, size):
+def _sizes(label: gpu.DeviceArray, size: gpu.DeviceArray) -> None:
     """One thread per valid pixel: point it to its root and count it into size[root]."""
     i = cuda.grid(1)
     if i >= label.shape[0] or label[i] < 0:
@@ -157,7 +161,7 @@ def _sizes(label, size):
     cuda.atomic.add(size, r, 1)
 
 
-def speckles(disp, size, max_diff):
+def speckles(disp: torch.Tensor, size: float, max_diff: float) -> torch.Tensor:
     """Return `postprocess.speckles` of a device disparity: bool (h, w), cv2.filterSpeckles'."""
     finite = torch.isfinite(disp)
     fixed = torch.where(finite, torch.round(disp * SPECKLE_SCALE), INVALID)
@@ -172,8 +176,11 @@ def speckles(disp, size, max_diff):
     return ((fixed.view(-1) == INVALID) | small).view(disp.shape) & finite
 
 
-def invalidate(disp, consistent, m, cfg, camera=None, disparity_confidence=None, total=None,
-               plain=None):
+def invalidate(disp: torch.Tensor, consistent: torch.Tensor, m: torch.Tensor, cfg: StereoConfig,
+               camera: tuple[float, float] | None = None,
+               disparity_confidence: torch.Tensor | None = None,
+               total: torch.Tensor | None = None, plain: torch.Tensor | None = None
+               ) -> torch.Tensor:
     """
     Set NaN in `disp` (float32 tensor, in place) as `postprocess.invalidate`; return `disp`.
 

@@ -31,6 +31,7 @@ their own finds first with lanes along a diagonal of the volume (see `_right_win
 that also reads coalesced.
 """
 from functools import cache
+from typing import Any
 
 from numba import cuda, float32, int32, njit, uint64
 import numpy as np
@@ -45,14 +46,14 @@ AHEAD = 4  # steps whose costs a path's lanes read before the step that uses the
 
 
 @njit(inline='always')  # kernels call it too (it compiles for a GPU without one)
-def _starts(h, w, dx, dy):
+def _starts(h: int, w: int, dx: int, dy: int) -> int:
     """Return the number of paths of direction (dx, dy): pixels whose predecessor is outside."""
     rows = min(abs(dy), h)
     return rows * w + min(abs(dx), w) * (h - rows)
 
 
 @njit(inline='always')
-def _start(b, h, w, dx, dy):
+def _start(b: int, h: int, w: int, dx: int, dy: int) -> tuple[int, int]:
     """Return (x, y) of the b-th pixel whose predecessor (x - dx, y - dy) is outside."""
     rows = min(abs(dy), h)
     if b < rows * w:  # in the |dy| rows the path enters through
@@ -64,7 +65,7 @@ def _start(b, h, w, dx, dy):
 
 
 @njit(inline='always')
-def _length(x, y, h, w, dx, dy):
+def _length(x: int, y: int, h: int, w: int, dx: int, dy: int) -> int:
     """Return the number of pixels of the path from (x, y) in direction (dx, dy)."""
     n = h + w
     if dx != 0:
@@ -75,14 +76,15 @@ def _length(x, y, h, w, dx, dy):
 
 
 @cache
-def _path_kernel(nd):
+def _path_kernel(nd: int) -> Any:
     """Return the path kernel for volumes of `nd` disparities (a constant of its code)."""
     nl, k = lanes(nd), per_lane(nd)
     queue = AHEAD * k  # a constant for the local array's size
     full = nd == k * nl  # every lane's every d inside D
 
     @cuda.jit
-    def _paths(cost, total, lines, dirs, p1, p2):
+    def _paths(cost: gpu.DeviceArray, total: gpu.DeviceArray, lines: gpu.DeviceArray,
+               dirs: gpu.DeviceArray, p1: float, p2: float) -> None:
         """
         Write L_r of every direction: the first into `total`, the j-th into lines[j - 1].
 
@@ -154,7 +156,7 @@ def _path_kernel(nd):
 
 
 @cuda.jit
-def _path_sum(total, lines):
+def _path_sum(total: gpu.DeviceArray, lines: gpu.DeviceArray) -> None:
     """Set total = ((L_0 + L_1) + L_2) + ... per cell (flat): `total` holds L_0, lines[k] L_k+1."""
     i = cuda.grid(1)
     if i >= total.shape[0]:
@@ -165,7 +167,8 @@ def _path_sum(total, lines):
     total[i] = v
 
 
-def aggregate(cost, p1, p2, paths, top, out=None):
+def aggregate(cost: torch.Tensor, p1: float, p2: float, paths: int, top: float,
+              out: torch.Tensor | None = None) -> torch.Tensor:
     """
     Return the summed path costs S of a cost volume tensor on the GPU, as `sgm.aggregate`.
 
@@ -193,7 +196,7 @@ def aggregate(cost, p1, p2, paths, top, out=None):
 
 
 @cuda.jit
-def _right_winners(total, rbest):
+def _right_winners(total: gpu.DeviceArray, rbest: gpu.DeviceArray) -> None:
     """
     rbest[y, xr] = argmin_d S(y, xr + d, d) over xr + d < W (first minimum): the right WTA.
 
@@ -219,12 +222,14 @@ def _right_winners(total, rbest):
 
 
 @cache
-def _winner_kernel(nd):
+def _winner_kernel(nd: int) -> Any:
     """Return the WTA kernel for volumes of `nd` disparities (a constant of its code)."""
     nl, k = lanes(nd), per_lane(nd)
 
     @cuda.jit
-    def _winners(total, rbest, subpixel, lr_tol, out, consistent, s_best, s_second):
+    def _winners(total: gpu.DeviceArray, rbest: gpu.DeviceArray, subpixel: bool, lr_tol: int,
+                 out: gpu.DeviceArray, consistent: gpu.DeviceArray, s_best: gpu.DeviceArray,
+                 s_second: gpu.DeviceArray) -> None:
         """
         Write the CPU's `sgm._wta` (first minimum on ties), S(best), min S over |d - best| > 1.
 
@@ -268,7 +273,8 @@ def _winner_kernel(nd):
     return _winners
 
 
-def winners(total, subpixel=False, lr_check=False):
+def winners(total: torch.Tensor, subpixel: bool = False, lr_check: bool = False
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """
     Return the WTA of S on the GPU: (disparity, consistent, s_best, s_second), tensors (H, W).
 
