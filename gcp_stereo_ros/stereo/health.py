@@ -2,19 +2,19 @@
 What a stereo pair says about itself: its views' health and how much of it was published.
 
 ROS-free and cheap: every look is at a thumbnail of every STEP-th pixel of each view (a
-1242x375 pair: 311x94 samples, well under a millisecond). `ViewCheck` names what is wrong
+1242x375 pair: 311x94 samples). `ViewCheck` names what is wrong
 with the views of a pair, each finding (`Finding`) at these levels, as fractions of the
 full scale (255 for uint8; for uint16 the smallest of 2^8 - 1, 2^10 - 1, ... 2^16 - 1 at or
 above the brightest sample seen so far, so a 12-bit camera's scale is 4095):
 
-- black: a view's mean below BLACK (0.05); the real frames of ../shared/data: 0.26 - 0.79;
-- saturated: more than SATURATED_SHARE (half) of a view at or above SATURATED (0.98), at
-  most 0.18 there (KITTI's sky);
+- black: a view's mean below BLACK (0.05);
+- saturated: more than SATURATED_SHARE (half) of a view at or above SATURATED (0.98);
 - frozen: a view identical to its own previous one, as no camera's noise leaves it;
-- exposures far apart: one view's mean more than EXPOSURE_RATIO (2) times the other's, at
-  most 1.11 there, 1.62 in MotorcycleE (a right view at another exposure, ../shared/imperfect);
+- exposures far apart: one view's mean more than EXPOSURE_RATIO (2) times the other's;
 - no texture: a view's mean absolute difference between horizontal neighbours (STEP px
-  apart) below TEXTURE (0.004); 0.016 - 0.079 there (Lampshade2 the least).
+  apart) below TEXTURE (0.004).
+
+Real frames lie well inside these levels (doc/node.md, "Whether to trust the depth").
 
 A black, saturated or frozen view is a fault (`Finding.fault`): its depth cannot be right;
 the others are conditions that explain a collapse of what is published. `published`
