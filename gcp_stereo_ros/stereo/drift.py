@@ -99,6 +99,11 @@ class DriftTracker:
         else:
             self._held = m
 
+    @property
+    def held(self) -> bool:
+        """Return whether an estimate that jumped waits for the next one to confirm it."""
+        return self._held is not None
+
     def _add(self, m: Misalignment) -> None:
         """Fold the known estimate `m` into the smoothed one."""
         used = _fitted(m)
@@ -233,9 +238,9 @@ class Monitor:
     The alignment of a stream of pairs, as the node runs it: estimated, smoothed, applied.
 
     `before` each pair collects a finished estimate, starts the next when the `Cadence`
-    lets it (on the `Background` thread, or inline with `every`: each pair, as the bag
-    tool does) and returns the correction for the pipeline; `after` counts the pair's
-    time. `status` may be read from another thread.
+    lets it or a jump waits to be confirmed (on the `Background` thread, or inline with
+    `every`: each pair, as the bag tool does) and returns the correction for the pipeline;
+    `after` counts the pair's time. `status` may be read from another thread.
     """
 
     def __init__(self, every: bool = False) -> None:
@@ -262,18 +267,16 @@ class Monitor:
         t = self.tracker
         t.warn, t.error = values.get('align_warn_px', WARN), values.get('align_error_px', ERROR)
         self.cadence.budget = values.get('align_budget', BUDGET)
-        done = None
-        if self.background is None:
-            done = _timed(left, right, config.max_disp)
-        else:
-            done = self.background.collect()
-            if self.cadence.due():
-                self.background.submit(left, right, config.max_disp)
+        done = (_timed(left, right, config.max_disp) if self.background is None
+                else self.background.collect())
         with self._lock:
             if done is not None:
                 t.update(done[0])
                 self.cadence.spent(done[1])
-            return t.correction()
+            correction = t.correction()
+        if self.background is not None and (self.cadence.due() or t.held):
+            self.background.submit(left, right, config.max_disp)
+        return correction
 
     def after(self, align_seconds: float) -> None:
         """Count the pair since `before`, of which the correction took `align_seconds`."""

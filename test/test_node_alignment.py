@@ -1,0 +1,61 @@
+"""
+The node's /diagnostics under a rig that drifts (stereo/drift.py).
+
+A looped real pair, its right view moved a little further down and rolled each pass, then
+set right again.
+"""
+import cv2
+from diagnostic_msgs.msg import DiagnosticStatus
+from gcp_stereo_ros.stereo.drift import ERROR, WARN
+import numpy as np
+import pytest
+from ros_helpers import wait_for
+
+LEVELS = {DiagnosticStatus.OK: 'OK', DiagnosticStatus.WARN: 'WARN',
+          DiagnosticStatus.ERROR: 'ERROR'}
+
+
+def drifted(right, down, roll_deg):
+    """Return `right` moved down by `down` px and rolled by `roll_deg` about its centre."""
+    h, w = right.shape[:2]
+    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), roll_deg, 1.0)
+    m[1, 2] += down
+    return cv2.warpAffine(right, m, (w, h), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
+@pytest.mark.parametrize('harness', [{'use_gcp': False, 'align_budget': 1.0}], indirect=True)
+def test_a_drifting_rig_is_warned_then_an_error_then_ok_once_set_right(harness, pair):
+    """
+    0.3 px down and 0.01 degree more a pass, to 9 px; then undone: each level within 30.
+
+    Each pass moves both views 1 px sideways (np.roll), so that no view shows as frozen.
+    On a pair this small an estimate takes about as long as the pair (20-60 ms), so the
+    budget lets them take all of the pairs' time: about one a pass, as a full-size pair on
+    the CPU has with the default 5 %.
+    """
+    left, right = pair
+    half = (left.shape[1] - 1) / 2
+    stamp = iter(range(1_000_000_000, 100_000_000_000, 100_000_000))
+    steps = [0.0] * 3 + list(np.arange(1, 31) * 0.3) + [9.0] * 10 + [0.0] * 15
+    applied, levels, px = [], [], []
+    for i, down in enumerate(steps):
+        roll = down / 30
+        applied.append(down + half * np.sin(np.radians(roll)))
+        lv, rv = (np.roll(im, i, axis=1) for im in (left, drifted(right, down, roll)))
+        n = harness.node.stats.totals().processed
+        harness.send_pair(lv, rv, 'rgb8', next(stamp))
+        wait_for(lambda: harness.node.stats.totals().processed > n, 'the pair processed')
+        status = harness.node.diagnostics.status()
+        levels.append(LEVELS[status.level])
+        px.append({kv.key: kv.value for kv in status.values}['misalignment px'])
+    applied = np.array(applied)
+    assert 'ERROR' not in levels[:3] and 'WARN' not in levels[:3], levels
+    warned, failed = levels.index('WARN'), levels.index('ERROR')
+    assert 0 <= warned - np.argmax(applied >= WARN) < 30, (levels, px)
+    assert applied[warned] >= 0.9 * WARN and float(px[warned]) >= WARN
+    assert 0 <= failed - np.argmax(applied > ERROR) < 30, (levels, px)
+    undone = len(steps) - 15
+    back = next(i for i in range(undone, len(steps)) if levels[i] == 'OK')
+    assert back - undone < 30 and levels[back:] == ['OK'] * (len(steps) - back), (levels, px)
+    assert float(px[-1]) < 0.25
