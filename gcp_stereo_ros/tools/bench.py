@@ -1,15 +1,19 @@
 """
-gcp-stereo-bench: stage timings against OpenCV StereoSGBM (MODE_HH) in the same process.
+gcp-stereo-bench: stage timings against OpenCV StereoSGBM's modes in the same process.
 
 A real pair is resized to KITTI size (1242x375) and matched with D = 128 disparities. Each
 stage runs once to warm up (Numba compilation, torch kernels), then `--repeat` times; the
-median is reported, with its ratio to OpenCV's time on the same images. Machines are noisy:
-read the ratios, not the absolute seconds. The process allocates as the node and the bag
-tool do (`mmap_large_arrays`); the first line names the CPU.
+median is reported. OpenCV runs first, each mode of gcp-stereo-eval's OPENCV_MODES (MODE_HH,
+MODE_SGBM, MODE_SGBM_3WAY, at full and half size) in a block of its own; each of our times
+is then given as a ratio to the fastest of them, to MODE_SGBM_3WAY at full size and to
+MODE_HH. Machines are noisy: read the ratios, not the absolute seconds. The process
+allocates as the node and the bag tool do (`mmap_large_arrays`); the first line names the
+CPU and the load average.
 
 `--device cpu` (the default): the default pipeline (precision 'auto') end to end as is, in
-bf16 and in fp32, with `downsample` 2 (as is and in fp32) and 4, and the cost and SGM stages
-alone.
+bf16 and in fp32, with `downsample` 2 (as is and in fp32) and 4, the real-time preset, and
+the cost and SGM stages alone. The JSON's `modes` say how each timed pipeline and OpenCV
+mode was run, for `gcp-stereo-plot rate`.
 `--device cuda`: the default pipeline on the GPU (transfers included) as is, in fp32 and with
 `downsample` 2, its stages as `cuda_<stage>` (each stage waits for the GPU to be timed, the
 pair's own time does not); the JSON names the GPU. Without a usable GPU it says why and
@@ -23,25 +27,43 @@ import resource
 import statistics
 import sys
 import time
+from typing import Callable
 
 import cv2
 import numpy as np
 import torch
 
 from .cli import console_main, positive_int
-from .evaluate import opencv_sgbm
+from .evaluate import OPENCV_MODES, opencv_sgbm
 from ..evaluation.datasets import list_frames, load_frame
-from ..stereo import gpu
 from ..stereo.cnn.network import resolve_precision
 from ..stereo.cnn.weights import int8_entry
 from ..stereo.config import StereoConfig
 from ..stereo.cost import cost_volume
+from ..stereo.cuda import gpu
 from ..stereo.images import gray_pair
 from ..stereo.memory import mmap_large_arrays
 from ..stereo.pipeline import StereoPipeline
 from ..stereo.sgm import aggregate
 
 KITTI_SIZE = (1242, 375)
+# Our pipelines, end to end: name -> (preset, the fields it changes).
+CPU_VARIANTS: dict[str, tuple[str, dict[str, object]]] = {
+    'pipeline': ('default', {}),
+    'pipeline_bf16': ('default', {'precision': 'bf16'}),
+    'pipeline_fp32': ('default', {'precision': 'fp32'}),
+    'pipeline_downsample2': ('default', {'downsample': 2}),
+    'pipeline_downsample2_fp32': ('default', {'downsample': 2, 'precision': 'fp32'}),
+    'pipeline_downsample4': ('default', {'downsample': 4}),
+    'pipeline_realtime': ('realtime', {}),
+}
+CUDA_VARIANTS: dict[str, tuple[str, dict[str, object]]] = {
+    'cuda_pipeline': ('default', {'device': 'cuda'}),
+    'cuda_pipeline_fp32': ('default', {'device': 'cuda', 'precision': 'fp32'}),
+    'cuda_pipeline_downsample2': ('default', {'device': 'cuda', 'downsample': 2}),
+}
+# The peers the ratios are printed against, besides the fastest.
+PEERS = ('opencv_sgbm_3way', 'opencv_sgbm_hh')
 
 
 def cpu_name():
@@ -65,7 +87,8 @@ def gpu_name():
             f'{p.major}.{p.minor}; torch {torch.__version__}, CUDA {torch.version.cuda}')
 
 
-def median_seconds(fn, repeat):
+def median_seconds(fn: Callable[[], object], repeat: int) -> float:
+    """Return the median wall time of `repeat` calls of `fn` after one to warm up."""
     fn()
     times = []
     for _ in range(repeat):
@@ -75,7 +98,8 @@ def median_seconds(fn, repeat):
     return statistics.median(times)
 
 
-def median_pipeline(pipeline, left, right, repeat):
+def median_pipeline(pipeline: StereoPipeline, left: np.ndarray, right: np.ndarray,
+                    repeat: int) -> tuple[float, dict[str, float]]:
     """
     Median end-to-end seconds of `pipeline` on the pair, and the median of each stage.
 
@@ -90,9 +114,35 @@ def median_pipeline(pipeline, left, right, repeat):
     return total, {k: statistics.median(s[k] for s in stages) for k in stages[0]}
 
 
-def volume_stage_seconds(left, right, nd, repeat):
+def opencv_seconds(left: np.ndarray, right: np.ndarray, nd: int,
+                   repeat: int) -> dict[str, float]:
     """
-    Return the median seconds of OpenCV and of our cost and SGM stages on their own.
+    Return the median seconds of each OpenCV mode, keyed 'opencv_sgbm_hh', ...
+
+    Each mode is timed in a block of its own (its warm-up, then its `repeat` runs), with as
+    many threads as OpenCV uses (`cv2.getNumThreads`).
+    """
+    return {name.replace('-', '_'): median_seconds(
+        lambda name=name: opencv_sgbm(left, right, nd, name), repeat) for name in OPENCV_MODES}
+
+
+def peer_ratios(seconds: dict[str, float]) -> dict[str, dict[str, float]]:
+    """
+    Return each of our times in `seconds` as ratios to OpenCV's: {peer: {name: ratio}}.
+
+    The peers are 'fastest' (the fastest OpenCV mode timed) and those of PEERS; names that
+    start with 'opencv_' are OpenCV's own and have no ratio.
+    """
+    opencv = {k: v for k, v in seconds.items() if k.startswith('opencv_')}
+    peers = {'fastest': min(opencv.values()), **{p: opencv[p] for p in PEERS}}
+    return {p: {k: v / t for k, v in seconds.items() if k not in opencv}
+            for p, t in peers.items()}
+
+
+def volume_stage_seconds(left: np.ndarray, right: np.ndarray, nd: int,
+                         repeat: int) -> dict[str, float]:
+    """
+    Return the median seconds of our cost and SGM stages on their own.
 
     Each writes into an array kept between calls, as the pipeline keeps its volumes (a fresh
     120 MB array a call would add its page faults to the stage).
@@ -101,7 +151,6 @@ def volume_stage_seconds(left, right, nd, repeat):
     census_f32 = census.astype(np.float32)
     kept = {t: np.empty(census.shape, t) for t in (np.uint16, np.float32)}
     stages = {
-        'opencv_sgbm_hh': lambda: opencv_sgbm(left, right, nd),
         'census': lambda: cost_volume(left, right, nd, 'census', out=kept[np.uint16],
                                       dtype=np.uint16),
         'sad': lambda: cost_volume(left, right, nd, 'sad', out=kept[np.float32]),
@@ -125,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--device', choices=('cpu', 'cuda'), default='cpu',
                     help="the pipeline's device (default cpu; cuda: 'cuda', the first GPU)")
     ap.add_argument('--json', type=Path,
-                    help='write {"stages", "ratios", "peak_rss_mb", "device"} here')
+                    help='write {"stages", "ratios", "modes", "device", ...} here')
     args = ap.parse_args(argv)
     if args.device == 'cuda':
         try:
@@ -139,52 +188,53 @@ def main(argv: list[str] | None = None) -> int:
     left, right = (cv2.resize(g, KITTI_SIZE, interpolation=cv2.INTER_AREA)
                    for g in gray_pair(frame.left, frame.right))
     nd = args.max_disp
+    load = os.getloadavg()[0]
     print(f'{frame.name} resized to {KITTI_SIZE[0]}x{KITTI_SIZE[1]}, D = {nd}, '
-          f'repeat {args.repeat}; {cpu_name()}')
-    variants: dict[str, dict[str, object]]
+          f'repeat {args.repeat}; {cpu_name()}; load average {load:.2f}')
+    seconds = opencv_seconds(left, right, nd, args.repeat)
     if args.device == 'cuda':
         print(f'GPU: {gpu_name()}')
-        seconds = {'opencv_sgbm_hh': median_seconds(lambda: opencv_sgbm(left, right, nd),
-                                                    args.repeat)}
-        variants = {'cuda_pipeline': {'device': 'cuda'},
-                    'cuda_pipeline_fp32': {'device': 'cuda', 'precision': 'fp32'},
-                    'cuda_pipeline_downsample2': {'device': 'cuda', 'downsample': 2}}
-        device = gpu_name()
+        variants, device = CUDA_VARIANTS, gpu_name()
     else:
-        seconds = volume_stage_seconds(left, right, nd, args.repeat)
-        variants = {'pipeline': {}, 'pipeline_bf16': {'precision': 'bf16'},
-                    'pipeline_fp32': {'precision': 'fp32'},
-                    'pipeline_downsample2': {'downsample': 2},
-                    'pipeline_downsample2_fp32': {'downsample': 2, 'precision': 'fp32'},
-                    'pipeline_downsample4': {'downsample': 4}}
-        device = cpu_name()
+        seconds.update(volume_stage_seconds(left, right, nd, args.repeat))
+        variants, device = CPU_VARIANTS, cpu_name()
     pipeline = StereoPipeline(StereoConfig(max_disp=nd))  # the default configuration
     print(f"pipeline: the defaults; precision 'auto' is "
-          f"{resolve_precision('auto', args.device, int8_entry('') is not None)} here")
+          f"{resolve_precision('auto', args.device, int8_entry('') is not None)} here; "
+          f'OpenCV on {cv2.getNumThreads()} threads')
     breakdown = {}
-    for name, changes in variants.items():
-        pipe = pipeline.with_config(pipeline.config.replace(**changes))
+    for name, (preset, changes) in variants.items():
+        pipe = pipeline.with_config(StereoConfig.for_cost('census', preset, max_disp=nd,
+                                                          **changes))
         seconds[name], breakdown[name] = median_pipeline(pipe, left, right, args.repeat)
         if name == 'cuda_pipeline':  # every CUDA stage: upload, cnn, ..., download
             seconds.update({f'cuda_{k}': v for k, v in breakdown[name].items()})
         elif name in ('pipeline', 'pipeline_bf16', 'pipeline_fp32'):
             for stage in ('cnn', 'confidence', 'plain_sgm', 'refine'):
                 seconds[stage + name[len('pipeline'):]] = breakdown[name][stage]
-    peer = seconds['opencv_sgbm_hh']
-    ratios = {name: s / peer for name, s in seconds.items() if name != 'opencv_sgbm_hh'}
+    ratios = peer_ratios(seconds)
+    fastest = min((k for k in seconds if k.startswith('opencv_')), key=seconds.__getitem__)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    print(f'{"stage":<24}{"seconds":>9}{"ours/opencv":>13}')
+    after = os.getloadavg()[0]
+    print(f'{"stage":<26}{"seconds":>9}{"x fastest":>11}{"x 3WAY":>9}{"x HH":>9}')
     for name, s in seconds.items():
-        print(f'{name:<24}{s:9.3f}{ratios.get(name, 1.0):13.2f}')
-    print(f'peak RSS {peak:.0f} MB')
+        cells = ''.join(f'{ratios[p][name]:{w}.2f}' if name in ratios[p] else ' ' * w
+                        for p, w in zip(('fastest', *PEERS), (11, 9, 9)))
+        print(f'{name:<26}{s:9.3f}{cells}')
+    print(f'fastest OpenCV mode: {fastest}; peak RSS {peak:.0f} MB; load average {after:.2f} '
+          'at the end')
     for name, stage_seconds in breakdown.items():
-        print(f'{name} = default Census+GCP+SGM end to end, {variants[name] or "as is"}; '
-              'median of its stages:',
+        print(f'{name} = Census+GCP+SGM end to end, preset {variants[name][0]!r}, '
+              f'{variants[name][1] or "as is"}; median of its stages:',
               ', '.join(f'{k} {v:.3f} s' for k, v in stage_seconds.items()))
     if args.json:
-        args.json.write_text(json.dumps({'stages': seconds, 'ratios': ratios, 'peak_rss_mb': peak,
-                                         'device': device, 'repeat': args.repeat,
-                                         'breakdown': breakdown}, indent=1))
+        modes = {name: {'method': 'census+gcp', 'preset': preset, 'set': changes}
+                 for name, (preset, changes) in variants.items()}
+        modes.update({m.replace('-', '_'): {'method': m} for m in OPENCV_MODES})
+        args.json.write_text(json.dumps({
+            'stages': seconds, 'ratios': ratios, 'fastest_opencv': fastest, 'peak_rss_mb': peak,
+            'device': device, 'load_average': [load, after], 'repeat': args.repeat,
+            'breakdown': breakdown, 'modes': modes}, indent=1))
     return 0
 
 
