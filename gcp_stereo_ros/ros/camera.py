@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..stereo.alignment import fold
+
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 # distortion_model -> the numbers of D coefficients OpenCV takes for it
 DISTORTION = {'plumb_bob': (0, 4, 5, 8, 12, 14), 'rational_polynomial': (0, 4, 5, 8, 12, 14),
@@ -131,14 +133,22 @@ class Rectifier:
     Rectify raw images with their CameraInfo's K, D, R and P, as image_proc does.
 
     Bilinear interpolation on OpenCV maps in fixed point; the maps of each side are built
-    once per calibration and kept while the CameraInfo stays the same.
+    once per calibration and kept while the CameraInfo stays the same. A misalignment to
+    undo folds into the maps (`alignment.fold`, float maps kept while it stays the same), so
+    that the image is resampled once.
     """
 
     def __init__(self):
         self._maps = {}  # side -> (calibration key, map1, map2)
+        self._folded = {}  # side -> ((calibration key, misalignment), map_x, map_y)
 
-    def __call__(self, side, info, image, topic='image'):
-        """Return `image` of `side` rectified; ValueError naming `topic` if `info` cannot."""
+    def __call__(self, side, info, image, topic='image', misalignment=None):
+        """
+        Return `image` of `side` rectified; ValueError naming `topic` if `info` cannot.
+
+        `misalignment`: an `alignment.Misalignment` of the rectified image to undo in the
+        same remap (None: rectified only).
+        """
         h, w = image.shape[:2]
         try:
             if info is None:
@@ -150,7 +160,12 @@ class Rectifier:
                 self._maps[side] = (key, *_rectify_maps(side, info, w, h))
         except ValueError as err:
             raise ValueError(f'{topic}: {err}') from None
-        _, map1, map2 = self._maps[side]
+        key, map1, map2 = self._maps[side]
+        if misalignment is not None:
+            if self._folded.get(side, (None,))[0] != (key, misalignment):
+                plain = cv2.convertMaps(map1, map2, cv2.CV_32FC1)
+                self._folded[side] = ((key, misalignment), *fold(misalignment, *plain))
+            _, map1, map2 = self._folded[side]
         return cv2.remap(image, map1, map2, cv2.INTER_LINEAR)
 
 

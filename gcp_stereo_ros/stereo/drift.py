@@ -249,6 +249,7 @@ class Monitor:
         self.cadence = Cadence()
         self.background = None if every else Background()
         self.on = True  # the config's align is 'auto'
+        self.last: Misalignment | None = None  # the newest estimate collected by `before`
         self._lock = threading.Lock()
         self._start = time.perf_counter()
 
@@ -271,6 +272,7 @@ class Monitor:
                 else self.background.collect())
         with self._lock:
             if done is not None:
+                self.last = done[0]
                 t.update(done[0])
                 self.cadence.spent(done[1])
             correction = t.correction()

@@ -6,8 +6,10 @@ frame and mean; unpublished pixels filled by the KITTI devkit's background inter
 as a KITTI submission is scored), then as KITTI reports them the density (% of ground-truth
 pixels published), bad3_published (% of published pixels off by more than 3 px) and
 near3_published (% of published pixels more than 3 px too near); the JSON rows also hold
-bad1/2/5 of both kinds and mae. Optionally writes colour-mapped disparity PNGs, each with
-a colour bar of its scale in px (far to near).
+bad1/2/5 of both kinds and mae. With ``align`` 'auto' (the default) each frame's estimate
+of the right view's misalignment is printed as it is made, and whether it was corrected
+(the rows: misalignment, px, and aligned). Optionally writes colour-mapped disparity PNGs,
+each with a colour bar of its scale in px (far to near).
 """
 import argparse
 import fnmatch
@@ -97,7 +99,7 @@ def cnn_method(method):
 class Runner:
     """Runs any method of `methods()` on frames, sharing one loaded CNN."""
 
-    def __init__(self, paths=16, overrides=None, preset='default'):
+    def __init__(self, paths=None, overrides=None, preset='default'):
         self.paths = paths
         self.overrides = dict(overrides or {})
         self.preset = preset
@@ -107,12 +109,14 @@ class Runner:
         """
         Return the StereoConfig of a pipeline method ('sad', 'census+gcp', ...).
 
-        The preset's values for the cost ('default' or 'paper'), then the overrides (a dict
-        of StereoConfig fields), then those of a sweep's grid `point`.
+        The preset's values for the cost ('default', 'paper' or 'realtime'), then the paths
+        if given (None: the preset's), the overrides (a dict of StereoConfig fields), then
+        those of a sweep's grid `point`.
         """
         cost, _, gcp = method.partition('+')
+        paths = {} if self.paths is None else {'paths': self.paths}
         return StereoConfig.for_cost(cost, self.preset, use_gcp=bool(gcp), max_disp=max_disp,
-                                     paths=self.paths, **{**self.overrides, **(point or {})})
+                                     **paths, **{**self.overrides, **(point or {})})
 
     def pipeline(self, method, max_disp):
         config = self.config(method, max_disp)
@@ -190,10 +194,12 @@ def add_options(ap, dataset_required=True):
                     choices=methods())
     ap.add_argument('--max-disp', type=positive_int,
                     help="disparities searched (default: each frame's own)")
-    ap.add_argument('--paths', type=int, default=16, choices=(4, 8, 16))
+    ap.add_argument('--paths', type=int, choices=(4, 8, 16),
+                    help="SGM paths (default: the preset's, 16 but for realtime's 4)")
     ap.add_argument('--preset', default='default', choices=tuple(PRESETS),
-                    help='parameter values before --set: the cross-validated defaults or '
-                         "the paper's (Table 1's paper rows)")
+                    help='parameter values before --set: the cross-validated defaults, '
+                         "the paper's (Table 1's paper rows) or the real-time preset "
+                         '(Census only; doc/speed.md)')
     ap.add_argument('--set', action='append', metavar='KEY=VALUE',
                     help='override a pipeline parameter (e.g. theta=0.7, precision=fp32); '
                     'repeatable')
@@ -231,11 +237,16 @@ def evaluate_frame(runner, args, source, name):
     if frame.gt is None:
         raise ValueError(f'frame {name} has no ground truth to evaluate against')
     max_disp = args.max_disp or frame.max_disp
-    rows = []
+    rows, said = [], set()
     for method in args.methods:
-        disp, _, seconds = runner.run(method, frame.left, frame.right, max_disp)
+        disp, result, seconds = runner.run(method, frame.left, frame.right, max_disp)
         rows.append({'method': method, 'frame': name, **error_rates(disp, frame.gt, frame.valid),
                      'seconds': seconds})
+        if result is not None and (m := result.misalignment) is not None:
+            rows[-1].update(misalignment=m.largest if m.known else None, aligned=m.verdict())
+            if (line := f'{m.summary()}: {m.verdict()}') not in said:  # once per frame
+                said.add(line)
+                tqdm.write(f'{name}: {line}')
         if (cnn := cnn_method(method)) is not None:  # what precision 'auto' gave, per row
             from ..stereo.cnn.network import resolve_precision
             cfg = runner.config(cnn, max_disp)

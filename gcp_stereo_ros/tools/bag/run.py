@@ -2,7 +2,10 @@
 gcp-stereo-bag run: a recording in, a bag out with the node's outputs, as the node makes them.
 
 Pairs by stamp with the node's sync, each pair with the camera_info of its stamp, optionally
-rectified, scored against the gt/ topics of a bag that `make` wrote.
+rectified, scored against the gt/ topics of a bag that `make` wrote. With `align` 'auto' the
+right view's misalignment is followed as the node follows it (`drift.Monitor`), estimated on
+every pair (the node: on its cadence); each pair's estimate is printed with what was applied.
+Raw input (`rectify`): the correction folds into the right view's rectification maps.
 """
 from pathlib import Path
 import sys
@@ -21,6 +24,8 @@ from ...ros.cnn_setup import config_warnings, load_cnn
 from ...ros.params import config_from_params, load_params_file
 from ...ros.rosimage import image_to_array, message_to_array
 from ...ros.sync import CameraInfos, image_sync
+from ...stereo.alignment import Misalignment
+from ...stereo.drift import Monitor
 from ...stereo.images import mask_image
 from ...stereo.memory import mmap_large_arrays
 from ...stereo.pipeline import StereoPipeline
@@ -61,6 +66,7 @@ class Runner:
         self.warned = set()
         self.processed = 0
         self.skipped = 0
+        self.drift = Monitor(every=True)
 
     def add(self, role, msg, timestamp):
         """Take one message of `role` (left, right, left_info, right_info, gt/...)."""
@@ -117,7 +123,13 @@ class Runner:
         try:
             left, right = self.image('left', left_msg, info), self.image('right', right_msg, info)
             model, why = camera_model(info, left.shape, config)
-            result = self.pipeline(left, right, camera=depth_scale(model))
+            align = self.drift.before(left, right, config, self.values)
+            applied = align
+            if self.rectify and align is not None and align.known:  # one resampling
+                raw = message_to_array(right_msg, self.topics['right'])
+                right = self.rectifier('right', info['right'], raw, self.topics['right'], align)
+                align = Misalignment(False, reason='undone in the rectification', cause='none')
+            result = self.pipeline(left, right, camera=depth_scale(model), misalignment=align)
         except ValueError as err:  # as the node: say why, go on with the next pair
             self.skipped += 1
             tqdm.write(f'{PROG}: skipping pair at stamp {stamp} ns: {err}', file=sys.stderr)
@@ -143,6 +155,10 @@ class Runner:
         for old in [t for t in self.gt if t < stamp]:  # ground truth of pairs never completed
             del self.gt[old]
         label = gt['gt/frame_name'].data if 'gt/frame_name' in gt else str(stamp)
+        if applied is not None and self.drift.last is not None:
+            done = (f'applied {applied.largest:.2f} px (smoothed over {applied.matches} '
+                    'estimates)' if applied.known else f'not applied: {applied.reason}')
+            tqdm.write(f'{label}: {self.drift.last.summary()}; {done}')
         if 'gt/disparity' in gt and 'gt/valid' in gt:
             rates = error_rates(result.disparity,
                                 image_to_array(gt['gt/disparity'], 'gt/disparity'),
