@@ -168,7 +168,12 @@ def table(rows, methods, key='bad3'):
 
 
 def parse_overrides(items):
-    """`KEY=VALUE` strings (VALUE parsed as YAML) into a dict of StereoConfig fields."""
+    """
+    `KEY=VALUE` strings into a dict of StereoConfig fields.
+
+    VALUE is parsed as YAML, but for a text field (cost, weights, device, precision, align),
+    which takes it as written: `align=off` is 'off', not YAML's false.
+    """
     out = {}
     for item in items or []:
         key, sep, value = item.partition('=')
@@ -178,7 +183,8 @@ def parse_overrides(items):
             raise ValueError(f'--set expects KEY=VALUE with KEY among {FIELDS}, '
                              f'got {item!r}')
         try:
-            out[key] = yaml.safe_load(value)
+            out[key] = (value if isinstance(getattr(StereoConfig, key, None), str)
+                        else yaml.safe_load(value))
         except yaml.YAMLError:
             raise ValueError(f'--set {item!r}: VALUE is not a YAML scalar') from None
     return out
