@@ -26,7 +26,7 @@ def known(offset, roll=0.0, error=0.02):
 def test_the_estimates_are_weighed_by_their_errors():
     t = DriftTracker()
     assert not t.current.known and t.status().px is None
-    assert t.status().message == 'unknown: no estimate yet' and not t.correction().known
+    assert t.status().message == 'no estimate yet' and not t.correction().known
     for _ in range(5):
         t.update(known(0.6))
     t.update(known(0.9, error=0.3))  # unsure: moves it by a few hundredths only
@@ -52,7 +52,7 @@ def test_unknown_estimates_keep_the_last_known_one():
     t = DriftTracker()
     t.update(Misalignment(False, shape=SHAPE, reason='dark: 3 matches, fewer than 40',
                           cause='dark'))
-    assert t.status().message == 'unknown: dark: 3 matches, fewer than 40'
+    assert t.status().message == 'dark: 3 matches, fewer than 40'
     t.update(known(0.5))
     t.update(Misalignment(False, shape=SHAPE, reason='textureless', cause='textureless'))
     status = t.status()
@@ -121,7 +121,7 @@ def test_the_monitor_estimates_in_the_background_and_corrects(cones):
     m = Monitor()
     try:
         first = m.before(cones.left, moved, config, {})
-        assert not first.known and m.status().message == 'unknown: no estimate yet'
+        assert not first.known and m.status().message == 'no estimate yet'
         deadline = time.monotonic() + 30
         while not m.tracker.estimates and time.monotonic() < deadline:
             m.after(0.0)

@@ -37,7 +37,7 @@ class DriftStatus:
     What the node reports of the misalignment: `level` of LEVELS, `px` and a `message`.
 
     `px` is the largest abs(v) over the image of the smoothed estimate's supported terms
-    (None while unknown, with `message` saying why), e.g. 0.45 for a KITTI 2015 pair.
+    (None while unknown, `message` then saying why), e.g. 0.45 for a KITTI 2015 pair.
     """
 
     level: str
@@ -144,7 +144,7 @@ class DriftTracker:
         """Return the level of the smoothed misalignment: OK, WARN from `warn`, ERROR."""
         m = self.current
         if not m.known:
-            return DriftStatus('OK', None, f'unknown: {self._why}')
+            return DriftStatus('OK', None, self._why)
         px = m.largest
         note = (f'; the last {self.unknown_run} estimates unknown: {self._why}'
                 if self.unknown_run else '')
