@@ -65,7 +65,7 @@ def test_rate_plot_of_a_bench_run(tmp_path, data_dir, capsys):
     assert plot.main(['rate', '--bench', str(bench), '--dataset', str(data_dir),
                       '--frames', *frames, '--out', str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert 'a CPU; load average [1.0, 1.5]; errors: mean of 2 frame(s)' in out
+    assert 'a CPU; load average 1.00 -> 1.50; errors: mean of 2 frame(s)' in out
     table = {t['mode']: t for t in json.loads((tmp_path / 'rate.json').read_text())['table']}
     assert [table[m]['x_3way'] for m in ('opencv_sgbm_3way', 'opencv_sgbm_hh_half',
                                          'pipeline_plain')] == [1.0, 0.5, 4.0]

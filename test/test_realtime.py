@@ -1,12 +1,13 @@
-"""The real-time preset: its values, its params file, gcp-stereo-eval's use of it, its errors."""
+"""The real-time preset: its values, its params file (the node, gcp-stereo-load), eval, errors."""
 from pathlib import Path
 
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.evaluation.metrics import error_rates
 from gcp_stereo_ros.ros.params import config_from_params, load_params_file
 from gcp_stereo_ros.stereo.config import StereoConfig
+from gcp_stereo_ros.stereo.memory import memory_bytes, MIB
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
-from gcp_stereo_ros.tools import evaluate
+from gcp_stereo_ros.tools import evaluate, load
 import pytest
 import yaml
 
@@ -44,3 +45,12 @@ def test_realtime_on_an_unseen_kitti_frame(data_dir):
     assert 5.7 < rates['bad3'] < 6.8  # full size 4.3, OpenCV MODE_SGBM_3WAY 7.34
     assert 81 < rates['density'] < 85 and rates['bad3_published'] < 3.0
     assert 'align' not in result.seconds and 'plain_sgm' in result.seconds
+
+
+def test_load_reads_a_params_file(capsys):
+    """gcp-stereo-load --params: the realtime file's memory estimate, not the default's."""
+    assert load.main(['--steps', '640x480:64', '--pipeline', '--params', str(REALTIME)]) == 0
+    row = capsys.readouterr().out.splitlines()[-1].split()
+    estimate = memory_bytes(StereoConfig.for_cost('census', 'realtime', max_disp=64), 480, 640)
+    assert row[0] == '640x480:64' and int(row[2]) == round(estimate / MIB)
+    assert estimate < memory_bytes(StereoConfig(max_disp=64), 480, 640) / 2

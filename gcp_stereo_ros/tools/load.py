@@ -37,7 +37,7 @@ from .cli import console_main, positive
 from ..evaluation.datasets import list_frames, load_frame
 from ..ros.graph import peer_graph
 from ..ros.messages import stamp_ns
-from ..ros.params import config_from_params
+from ..ros.params import config_from_params, load_params_file
 from ..ros.rosimage import array_to_image_fields
 from ..stereo.memory import memory_bytes, MIB, mmap_large_arrays
 from ..stereo.pipeline import StereoPipeline
@@ -92,6 +92,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument('--stamps', choices=('fresh', 'repeat'), default='fresh',
                     help='a new stamp for every pair (default), or one stamp for all, as a '
                          'looped one-frame bag')
+    ap.add_argument('--params', type=Path, metavar='FILE',
+                    help='node parameters file, as with --ros-args --params-file (e.g. '
+                         'config/gcp_stereo_realtime.yaml); -p overrides it')
     ap.add_argument('-p', '--param', action='append', default=[], type=node_param,
                     metavar='NAME:=VALUE',
                     help='node parameter, as with --ros-args -p; repeatable')
@@ -106,12 +109,13 @@ def main(argv: list[str] | None = None) -> None:
     frame = load_frame(args.dataset, args.frame or list_frames(args.dataset)[0])
     params = {'max_disparity': frame.max_disp, **dict(args.param)}
     if args.steps:
-        values = {k: yaml.safe_load(str(v)) for k, v in params.items()}  # as rcl reads them
+        values = {**(load_params_file(args.params) if args.params else {}),
+                  **{k: yaml.safe_load(str(v)) for k, v in params.items()}}  # as rcl reads them
         if args.pipeline:
             return _walk_pipeline(args.steps, frame, values)
-        with peer_graph('gcp_stereo_load', params) as (peer, node):
+        with peer_graph('gcp_stereo_load', params, args.params) as (peer, node):
             return _walk_node(args.steps, frame, values, peer, node.pid)
-    with peer_graph('gcp_stereo_load', params) as (peer, node):
+    with peer_graph('gcp_stereo_load', params, args.params) as (peer, node):
         report = _measure(args, frame, peer, node)
     for key, value in report.items():
         print(f'{key:<21} {value}')

@@ -225,8 +225,9 @@ def rate(args: argparse.Namespace) -> None:
     table = [{'mode': name, 'seconds': seconds[name], 'x_3way': seconds[name] / peer,
               **{k: float(np.mean([r[k] for r in rows if r['mode'] == name]))
                  for k in ('bad3', 'density', 'bad3_published')}} for name in modes]
-    print(f'{bench.get("device", "unknown CPU")}; load average {bench.get("load_average")}; '
-          f'errors: mean of {len(frames)} frame(s)')
+    load = ' -> '.join(f'{v:.2f}' for v in bench.get('load_average', ())) or 'unknown'
+    where = f'{bench.get("device", "unknown CPU")}; load average {load}'
+    print(f'{where}; errors: mean of {len(frames)} frame(s)')
     print(f'{"mode":<28}{"seconds":>8}{"x 3WAY":>8}{"pairs/s":>9}{"bad3 %":>8}'
           f'{"density %":>10}{"bad3 of published %":>21}')
     for t in table:
@@ -243,7 +244,7 @@ def rate(args: argparse.Namespace) -> None:
     ax.set_xscale('log')
     ax.set_xlabel('time of a KITTI pair (1242x375, D 128), x OpenCV MODE_SGBM_3WAY')
     ax.set_ylabel(f'dense error > 3 px (%), mean of {len(frames)} frame(s)')
-    ax.set_title(f'ours (blue) and OpenCV (orange); {bench.get("device", "")}', fontsize=8)
+    ax.set_title(f'ours (blue) and OpenCV (orange); {where}', fontsize=8)
     ax.grid(alpha=0.3, which='both')
     fig.tight_layout()
     fig.savefig(args.out / 'rate.png', dpi=110)
