@@ -85,7 +85,7 @@ def test_the_pipeline_undoes_a_drift_by_default(data_dir):
     """Middlebury cones (a validation frame) moved down 2 px: 3.54 -> 26.2 -> 3.20 % wrong."""
     frame = load_frame(data_dir, 'middlebury_v2/cones')
     pipe = StereoPipeline(StereoConfig(max_disp=frame.max_disp))
-    as_is = pipe.with_config(pipe.config.replace(align='off'))
+    as_is = pipe.with_config(pipe.config.replace(align=False))
     left, right = gray_pair(frame.left, frame.right)
     aligned = error_rates(as_is(left, right).disparity, frame.gt, frame.valid)
     warped = warp(right, 2.0, 0.0)
@@ -98,12 +98,12 @@ def test_the_pipeline_undoes_a_drift_by_default(data_dir):
     m = result.misalignment
     assert m.verdict() == 'corrected' and abs(m.term('offset') - 2 + 0.08) < 0.05
     assert 'align' in result.seconds and as_is(left, right).misalignment is None
-    assert StereoConfig.for_cost('census', 'paper').align == 'off'
+    assert StereoConfig.for_cost('census', 'paper').align is False
 
 
 @pytest.mark.parametrize('case', ['aligned', 'flat', 'dark'])
 def test_a_pair_it_leaves_alone_gives_the_same_bits(data_dir, case):
-    """A well rectified pair (cones, 0.08 px), a textureless and a dark one: as with 'off'."""
+    """A well rectified pair (cones, 0.08 px), a textureless and a dark one: as without align."""
     frame = load_frame(data_dir, 'middlebury_v2/cones')
     left, right = gray_pair(frame.left, frame.right)
     if case == 'flat':
@@ -113,7 +113,7 @@ def test_a_pair_it_leaves_alone_gives_the_same_bits(data_dir, case):
         left, right = (rng.poisson(1.0, left.shape).astype(np.float32) for _ in range(2))
     config = StereoConfig(max_disp=frame.max_disp, use_gcp=False)
     result = StereoPipeline(config)(left, right)
-    off = StereoPipeline(config.replace(align='off'))(left, right)
+    off = StereoPipeline(config.replace(align=False))(left, right)
     np.testing.assert_array_equal(result.disparity, off.disparity)
     m = result.misalignment
     assert m.known == (case == 'aligned') and m.verdict() != 'corrected'

@@ -212,7 +212,7 @@ def test_filtered_gcps_cut_the_error_on_unseen_kitti(data_dir):
     rates = []
     for radius in (0, RADIUS):
         cfg = StereoConfig(cnn_filter_radius=radius, subpixel=False, gcp_plain_check=False,
-                           align='off', **UNFILTERED)
+                           align=False, **UNFILTERED)
         rates.append(error_rates(StereoPipeline(cfg)(f.left, f.right).disparity, f.gt, f.valid))
     plain, filtered = rates
     assert filtered['bad3'] < min(4.2, plain['bad3'] - 0.08), rates

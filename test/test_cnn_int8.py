@@ -138,7 +138,7 @@ def test_int8_keeps_the_defaults_error_on_unseen_kitti(data_dir):
     """
     f = load_frame(data_dir, 'kitti2012/000070_10')
     rates = {p: error_rates(StereoPipeline(StereoConfig(  # the pair as recorded, as measured
-        max_disp=f.max_disp, precision=p, align='off'))(f.left, f.right).disparity, f.gt,
+        max_disp=f.max_disp, precision=p, align=False))(f.left, f.right).disparity, f.gt,
         f.valid) for p in ('bf16', 'int8')}
     bf16, int8 = rates['bf16'], rates['int8']
     assert abs(int8['bad3'] - bf16['bad3']) < 0.1 and int8['bad3'] < 4.5, rates

@@ -60,8 +60,7 @@ def test_a_flag_must_be_a_boolean(name):
 def test_a_choice_field_takes_only_its_choices(name):
     for choice in CHOICES[name]:
         assert getattr(StereoConfig(**{name: choice}), name) == choice
-    wrong = {'cost': 'ncc', 'paths': 16.0, 'downsample': 3, 'precision': 'fp16',
-             'align': 'on'}[name]
+    wrong = {'cost': 'ncc', 'paths': 16.0, 'downsample': 3, 'precision': 'fp16'}[name]
     with pytest.raises(ValueError, match=f'^{name} must be one of '):
         StereoConfig(**{name: wrong})
 

@@ -114,7 +114,7 @@ def test_the_background_thread_gives_the_estimate(cones):
 
 
 def test_the_monitor_estimates_in_the_background_and_corrects(cones):
-    """Cones moved 2 px down: the first pairs go as they are, then corrected; 'off': None."""
+    """Cones moved 2 px down: the first pairs go as they are, then corrected; without align: None."""
     from gcp_stereo_ros.stereo.config import StereoConfig
     config = StereoConfig(max_disp=cones.max_disp)
     moved = drift(cones.right, 2.0, 0.0)
@@ -129,7 +129,7 @@ def test_the_monitor_estimates_in_the_background_and_corrects(cones):
             given = m.before(cones.left, moved, config, {'align_warn_px': 1.5})
         assert given.known and abs(given.term('offset') - 1.92) < 0.05
         assert m.status().level == 'WARN' and 'the rig has drifted' in m.status().message
-        assert m.before(cones.left, moved, config.replace(align='off'), {}) is None
+        assert m.before(cones.left, moved, config.replace(align=False), {}) is None
         assert m.status().message == 'align is off'
     finally:
         m.close()

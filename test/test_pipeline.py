@@ -97,7 +97,7 @@ def test_plain_sgm_check_of_the_gcps_on_kitti_000035(data_dir):
     """
     from gcp_stereo_ros.stereo.config import UNFILTERED
     f = load_frame(data_dir, 'kitti2015/000035_10')
-    cfg = StereoConfig(max_disp=f.max_disp, subpixel=False, precision='fp32', align='off',
+    cfg = StereoConfig(max_disp=f.max_disp, subpixel=False, precision='fp32', align=False,
                        **UNFILTERED)
     pipe = StereoPipeline(cfg)
     checked = pipe(f.left, f.right)

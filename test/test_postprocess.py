@@ -157,11 +157,11 @@ def kitti(data_dir):
     """
     Run the defaults, without background_ratio, plain_check, every test on two frames.
 
-    The pairs as recorded (align 'off'): the confidence fit and these figures predate the
+    The pairs as recorded (align off): the confidence fit and these figures predate the
     alignment, which moves 000070's 0.6-0.8 bin 0.107 off its prediction (doc/alignment.md).
     """
     out = {}
-    pipe = StereoPipeline(StereoConfig(align='off'))
+    pipe = StereoPipeline(StereoConfig(align=False))
     for name in ('kitti2015/000031_10', 'kitti2012/000070_10'):
         frame = load_frame(data_dir, name)
         result = pipe(frame.left, frame.right)

@@ -19,9 +19,9 @@ def test_the_params_file_is_the_preset():
     config = config_from_params(load_params_file(REALTIME))
     assert config == StereoConfig.for_cost('census', 'realtime')
     default = StereoConfig()
-    assert (config.downsample, config.paths, config.align) == (2, 4, 'off')
+    assert (config.downsample, config.paths, config.align) == (2, 4, False)
     # the rest is the default's: the CNN's filter, the GCP checks, plain SGM, invalidation
-    assert config.replace(downsample=1, paths=16, align='auto') == default
+    assert config.replace(downsample=1, paths=16, align=True) == default
 
 
 def test_sad_has_no_realtime_values():

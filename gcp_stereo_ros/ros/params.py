@@ -149,9 +149,9 @@ PARAMS = (
           'memory budget in MiB of processing one pair: a pair that would need more is '
           'refused, saying what to lower', 'memory_limit_mb'),
     Param('align', _D.align,
-          "'auto': measure the right view's vertical misalignment (a drifting rig) every few "
-          'frames, smooth it over them and undo it where the data supports it and it reaches '
-          "0.25 px; /diagnostics reports it (doc/alignment.md). 'off': take the pair as it is",
+          "measure the right view's vertical misalignment (a drifting rig) every few frames, "
+          'smooth it over them and undo it where the data supports it and it reaches 0.25 px; '
+          '/diagnostics reports it (doc/alignment.md). false: take the pair as it is',
           'align'),
     Param('align_warn_px', WARN, '/diagnostics turns WARN (the rig has drifted, recalibrate) '
           'from a misalignment of this many px', range=(0.0, 100.0, 0.0)),

@@ -25,14 +25,13 @@ UNFILTERED: dict[str, Any] = {
 # What each preset sets besides a cost's own values (`costs.CostSpec.presets`).
 PRESETS: dict[str, dict[str, Any]] = {
     'default': {},
-    'paper': {**UNFILTERED, 'subpixel': False, 'cnn_filter_radius': 0, 'align': 'off'},
+    'paper': {**UNFILTERED, 'subpixel': False, 'cnn_filter_radius': 0, 'align': False},
     # Rate on a CPU: matching at half resolution, 4 SGM paths, no alignment (doc/speed.md,
     # "The real-time preset": each lever measured).
-    'realtime': {'downsample': 2, 'paths': 4, 'align': 'off'},
+    'realtime': {'downsample': 2, 'paths': 4, 'align': False},
 }
 DOWNSAMPLE = (1, 2, 4)
 PRECISIONS = ('auto', 'int8', 'bf16', 'fp32')
-ALIGN = ('auto', 'off')
 MAX_COST_PARAM = 10000.0  # P1, P2, c_hi, c_low: far above any useful value of either cost
 # The valid values of each number field, both ends included: the one source of truth,
 # which the node's parameter descriptors are made from (ros/params.py). The window's
@@ -57,14 +56,13 @@ RANGES: dict[str, tuple[int, int] | tuple[float, float]] = {
 }
 # The only values of these fields (the costs: those registered, `costs.COSTS`).
 CHOICES: dict[str, Collection[Any]] = {'cost': COSTS.keys(), 'paths': PATHS,
-                                       'downsample': DOWNSAMPLE, 'precision': PRECISIONS,
-                                       'align': ALIGN}
+                                       'downsample': DOWNSAMPLE, 'precision': PRECISIONS}
 # The fields the CNN's outputs (StereoResult cof_c, cof_d, cof_dr) depend on: a run may reuse
 # another's outputs (`StereoPipeline.__call__`'s `cnn`) only where these are the same.
 CNN_FIELDS = ('weights', 'device', 'precision', 'max_disp', 'downsample', 'cnn_filter_radius',
               'align')
 FLAGS = ('use_gcp', 'gcp_lr_check', 'gcp_plain_check', 'subpixel', 'median', 'valid_window',
-         'lr_check')
+         'lr_check', 'align')
 DEVICE = re.compile(r'cpu|cuda(:\d+)?')
 _CENSUS = COSTS['census'].presets['default']  # the default cost's values
 
@@ -169,10 +167,10 @@ class StereoConfig:
         Match at 1 / downsample of the resolution: 1, 2 or 4; default 1.
     memory_limit_mb : int
         A pair that would need more memory is refused, MiB; in [64, 1048576], default 3072.
-    align : str
-        ``'auto'``: measure the pair's vertical misalignment and undo it where the data
-        supports it and it reaches 0.25 px (`alignment`; doc/alignment.md); ``'off'``:
-        take the pair as it is (the paper preset); default 'auto'.
+    align : bool
+        Measure the pair's vertical misalignment and undo it where the data supports it
+        and it reaches 0.25 px (`alignment`; doc/alignment.md); False: take the pair as it
+        is (the paper and realtime presets); default True.
 
     """
 
@@ -208,7 +206,7 @@ class StereoConfig:
     background_ratio: float = 1.1
     downsample: int = 1
     memory_limit_mb: int = 3072
-    align: str = 'auto'
+    align: bool = True
 
     def __post_init__(self) -> None:
         """Raise ValueError naming every field whose value is invalid (see `_problems`)."""

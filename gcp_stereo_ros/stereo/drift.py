@@ -248,7 +248,7 @@ class Monitor:
         self.tracker = DriftTracker()
         self.cadence = Cadence()
         self.background = None if every else Background()
-        self.on = True  # the config's align is 'auto'
+        self.on = True  # the config's align
         self.last: Misalignment | None = None  # the newest estimate collected by `before`
         self._lock = threading.Lock()
         self._start = time.perf_counter()
@@ -256,13 +256,13 @@ class Monitor:
     def before(self, left: npt.ArrayLike, right: npt.ArrayLike, config: StereoConfig,
                values: Mapping[str, Any]) -> Misalignment | None:
         """
-        Return the misalignment the pipeline is to undo in this pair (None with align 'off').
+        Return the misalignment the pipeline is to undo in this pair (None without align).
 
         `values`: the node's parameters (align_warn_px, align_error_px, align_budget; the
         module's constants where missing).
         """
         self._start = time.perf_counter()
-        self.on = config.align != 'off'
+        self.on = config.align
         if not self.on:
             return None
         t = self.tracker
@@ -285,7 +285,7 @@ class Monitor:
         self.cadence.frame(time.perf_counter() - self._start, align_seconds)
 
     def status(self) -> DriftStatus:
-        """Return the smoothed misalignment's level ('OK', None px with align 'off')."""
+        """Return the smoothed misalignment's level ('OK', None px without align)."""
         if not self.on:
             return DriftStatus('OK', None, 'align is off')
         with self._lock:

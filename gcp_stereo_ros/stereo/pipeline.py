@@ -77,9 +77,9 @@ class StereoResult:
     margin : numpy.ndarray
         float32 (H, W) in [0, 1]: the SGM cost margin 1 - S(winner) / S(rival).
     misalignment : Misalignment or None
-        With ``align`` 'auto': the right view's vertical misalignment v(x, y) over the
+        With ``align``: the right view's vertical misalignment v(x, y) over the
         (H, W) image (estimated on this pair, or the one given), known or not and why; its
-        ``verdict()`` says whether the pair was corrected. None with 'off'.
+        ``verdict()`` says whether the pair was corrected. None without ``align``.
 
     """
 
@@ -184,9 +184,9 @@ class StereoPipeline:
             each stage's device time (the bench); else a GPU's stages overlap the host and
             only their sum is the pair's time. The CPU's stages are timed either way.
         misalignment : Misalignment, optional
-            With ``align`` 'auto', the misalignment to undo instead of estimating this
+            With ``align``, the misalignment to undo instead of estimating this
             pair's (the node's, smoothed over frames); `alignment.correct` decides whether
-            it is (an unknown one: the pair stays as it is). Ignored with 'off'.
+            it is (an unknown one: the pair stays as it is). Ignored without ``align``.
 
         Returns
         -------
@@ -208,7 +208,7 @@ class StereoPipeline:
         left, right = gray_pair(left, right)
         check_memory(cfg, *left.shape)
         shape = left.shape
-        if cfg.align != 'off':
+        if cfg.align:
             right, misalignment = self._align(left, right, misalignment, run)
         if cfg.downsample > 1:
             left, right, reused = self._to_matching_grid(left, right, reused, run)
@@ -223,7 +223,7 @@ class StereoPipeline:
                             cof_d=cof_d, cof_dr=cof_dr, seconds=run.seconds,
                             disparity_confidence=published.confidence,
                             consistent=published.consistent, margin=published.margin,
-                            misalignment=misalignment if cfg.align != 'off' else None)
+                            misalignment=misalignment if cfg.align else None)
 
     def _align(self, left: np.ndarray, right: np.ndarray, given: Misalignment | None,
                run: '_Run') -> tuple[np.ndarray, Misalignment]:

@@ -6,7 +6,7 @@ frame and mean; unpublished pixels filled by the KITTI devkit's background inter
 as a KITTI submission is scored), then as KITTI reports them the density (% of ground-truth
 pixels published), bad3_published (% of published pixels off by more than 3 px) and
 near3_published (% of published pixels more than 3 px too near); the JSON rows also hold
-bad1/2/5 of both kinds and mae. With ``align`` 'auto' (the default) each frame's estimate
+bad1/2/5 of both kinds and mae. With ``align`` (the default) each frame's estimate
 of the right view's misalignment is printed as it is made, and whether it was corrected
 (the rows: misalignment, px, and aligned). Optionally writes colour-mapped disparity PNGs,
 each with a colour bar of its scale in px (far to near).
@@ -171,8 +171,8 @@ def parse_overrides(items):
     """
     `KEY=VALUE` strings into a dict of StereoConfig fields.
 
-    VALUE is parsed as YAML, but for a text field (cost, weights, device, precision, align),
-    which takes it as written: `align=off` is 'off', not YAML's false.
+    VALUE is parsed as YAML, but for a text field (cost, weights, device, precision), which
+    takes it as written: `weights=off` is the file 'off', not YAML's false.
     """
     out = {}
     for item in items or []:

@@ -2,7 +2,7 @@
 gcp-stereo-bag run: a recording in, a bag out with the node's outputs, as the node makes them.
 
 Pairs by stamp with the node's sync, each pair with the camera_info of its stamp, optionally
-rectified, scored against the gt/ topics of a bag that `make` wrote. With `align` 'auto' the
+rectified, scored against the gt/ topics of a bag that `make` wrote. With `align` (the default) the
 right view's misalignment is followed as the node follows it (`drift.Monitor`), estimated on
 every pair (the node: on its cadence); each pair's estimate is printed with what was applied.
 Raw input (`rectify`): the correction folds into the right view's rectification maps.
