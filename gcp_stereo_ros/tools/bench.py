@@ -20,6 +20,7 @@ pair's own time does not); the JSON names the GPU. Without a usable GPU it says 
 exits 1.
 """
 import argparse
+import functools
 import json
 import os
 from pathlib import Path
@@ -122,8 +123,8 @@ def opencv_seconds(left: np.ndarray, right: np.ndarray, nd: int,
     Each mode is timed in a block of its own (its warm-up, then its `repeat` runs), with as
     many threads as OpenCV uses (`cv2.getNumThreads`).
     """
-    return {name.replace('-', '_'): median_seconds(
-        lambda name=name: opencv_sgbm(left, right, nd, name), repeat) for name in OPENCV_MODES}
+    return {name.replace('-', '_'): median_seconds(functools.partial(
+        opencv_sgbm, left, right, nd, name), repeat) for name in OPENCV_MODES}
 
 
 def peer_ratios(seconds: dict[str, float]) -> dict[str, dict[str, float]]:
