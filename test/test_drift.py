@@ -114,7 +114,7 @@ def test_the_background_thread_gives_the_estimate(cones):
 
 
 def test_the_monitor_estimates_in_the_background_and_corrects(cones):
-    """Cones moved 2 px down: the first pairs go as they are, then corrected; without align: None."""
+    """Cones moved 2 px down: the first pairs as they are, then corrected; align off: None."""
     from gcp_stereo_ros.stereo.config import StereoConfig
     config = StereoConfig(max_disp=cones.max_disp)
     moved = drift(cones.right, 2.0, 0.0)
@@ -122,9 +122,10 @@ def test_the_monitor_estimates_in_the_background_and_corrects(cones):
     try:
         first = m.before(cones.left, moved, config, {})
         assert not first.known and m.status().message == 'no estimate yet'
+        assert not m.background.busy  # the pipeline has not taken the pair yet
         deadline = time.monotonic() + 30
         while not m.tracker.estimates and time.monotonic() < deadline:
-            m.after(0.0)
+            m.after(cones.left, moved, cones.max_disp, 0.0)
             time.sleep(0.05)
             given = m.before(cones.left, moved, config, {'align_warn_px': 1.5})
         assert given.known and abs(given.term('offset') - 1.92) < 0.05

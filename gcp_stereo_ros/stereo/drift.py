@@ -237,10 +237,11 @@ class Monitor:
     """
     The alignment of a stream of pairs, as the node runs it: estimated, smoothed, applied.
 
-    `before` each pair collects a finished estimate, starts the next when the `Cadence`
-    lets it or a jump waits to be confirmed (on the `Background` thread, or inline with
-    `every`: each pair, as the bag tool does) and returns the correction for the pipeline;
-    `after` counts the pair's time. `status` may be read from another thread.
+    `before` each pair collects a finished estimate (inline with `every`: each pair, as the
+    bag tool does) and returns the correction for the pipeline; `after` a pair the
+    pipeline took counts its time and, when the `Cadence` lets it or a jump waits to be
+    confirmed, starts the next estimate on it (on the `Background` thread), so that a pair
+    the pipeline refused is never estimated. `status` may be read from another thread.
     """
 
     def __init__(self, every: bool = False) -> None:
@@ -275,14 +276,20 @@ class Monitor:
                 self.last = done[0]
                 t.update(done[0])
                 self.cadence.spent(done[1])
-            correction = t.correction()
-        if self.background is not None and (self.cadence.due() or t.held):
-            self.background.submit(left, right, config.max_disp)
-        return correction
+            return t.correction()
 
-    def after(self, align_seconds: float) -> None:
-        """Count the pair since `before`, of which the correction took `align_seconds`."""
+    def after(self, left: npt.ArrayLike, right: npt.ArrayLike, max_disp: int,
+              align_seconds: float) -> None:
+        """
+        Count the pair since `before`, of which the correction took `align_seconds`.
+
+        The pipeline took the pair (`left`, `right` as `before` had them): start the next
+        estimate on it if one is due.
+        """
         self.cadence.frame(time.perf_counter() - self._start, align_seconds)
+        due = self.cadence.due() or self.tracker.held
+        if self.on and self.background is not None and due:
+            self.background.submit(left, right, max_disp)
 
     def status(self) -> DriftStatus:
         """Return the smoothed misalignment's level ('OK', None px without align)."""
