@@ -15,15 +15,7 @@ from gcp_stereo_ros.stereo.images import gray_pair
 from gcp_stereo_ros.stereo.pipeline import StereoPipeline
 import numpy as np
 import pytest
-
-
-def warp(right, down, roll_deg):
-    """Return `right` moved down by `down` px and rolled by `roll_deg` about its centre."""
-    h, w = right.shape[:2]
-    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), roll_deg, 1.0)
-    m[1, 2] += down
-    return cv2.warpAffine(right, m, (w, h), flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
+from rig import warp
 
 
 def edges(shape, down, roll_deg):

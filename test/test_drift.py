@@ -7,12 +7,12 @@ OK again once the drift is undone.
 """
 import time
 
-import cv2
 from gcp_stereo_ros.evaluation.datasets import load_frame
 from gcp_stereo_ros.stereo.alignment import estimate, Misalignment
 from gcp_stereo_ros.stereo.drift import Background, Cadence, DriftTracker, ERROR, Monitor, WARN
 import numpy as np
 import pytest
+from rig import warp
 
 SHAPE = (375, 1242)
 
@@ -117,7 +117,7 @@ def test_the_monitor_estimates_in_the_background_and_corrects(cones):
     """Cones moved 2 px down: the first pairs as they are, then corrected; align off: None."""
     from gcp_stereo_ros.stereo.config import StereoConfig
     config = StereoConfig(max_disp=cones.max_disp)
-    moved = drift(cones.right, 2.0, 0.0)
+    moved = warp(cones.right, 2.0, 0.0)
     m = Monitor()
     try:
         first = m.before(cones.left, moved, config, {})
@@ -138,15 +138,6 @@ def test_the_monitor_estimates_in_the_background_and_corrects(cones):
     assert inline.before(cones.left, moved, config, {}).known and inline.tracker.estimates == 1
 
 
-def drift(right, down, roll_deg):
-    """Return `right` moved down by `down` px and rolled by `roll_deg` about its centre."""
-    h, w = right.shape[:2]
-    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), roll_deg, 1.0)
-    m[1, 2] += down
-    return cv2.warpAffine(right, m, (w, h), flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
-
-
 def test_a_drifting_rig_turns_warn_then_error_then_ok_once_undone(cones):
     """Down by 0.15 px and rolled by 0.005 degree more each frame, to 9 px; then undone."""
     half = (cones.left.shape[1] - 1) / 2
@@ -156,7 +147,7 @@ def test_a_drifting_rig_turns_warn_then_error_then_ok_once_undone(cones):
     for down in steps:
         roll = down / 30
         applied.append(down + half * np.sin(np.radians(roll)))
-        t.update(estimate(cones.left, drift(cones.right, down, roll), cones.max_disp))
+        t.update(estimate(cones.left, warp(cones.right, down, roll), cones.max_disp))
         levels.append(t.status().level)
     applied = np.array(applied)
     first = {lv: levels.index(lv) for lv in ('WARN', 'ERROR')}

@@ -4,24 +4,15 @@ The node's /diagnostics under a rig that drifts (stereo/drift.py), and the bag t
 A looped real pair, its right view moved a little further down and rolled each pass, then
 set right again; a raw recording whose right camera moved, rectified and corrected at once.
 """
-import cv2
 from diagnostic_msgs.msg import DiagnosticStatus
 from gcp_stereo_ros.stereo.drift import ERROR, WARN
 import numpy as np
 import pytest
+from rig import warp
 from ros_helpers import wait_for
 
 LEVELS = {DiagnosticStatus.OK: 'OK', DiagnosticStatus.WARN: 'WARN',
           DiagnosticStatus.ERROR: 'ERROR'}
-
-
-def drifted(right, down, roll_deg):
-    """Return `right` moved down by `down` px and rolled by `roll_deg` about its centre."""
-    h, w = right.shape[:2]
-    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), roll_deg, 1.0)
-    m[1, 2] += down
-    return cv2.warpAffine(right, m, (w, h), flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
 
 
 @pytest.mark.parametrize('harness', [{'use_gcp': False, 'align_budget': 1.0}], indirect=True)
@@ -42,7 +33,7 @@ def test_a_drifting_rig_is_warned_then_an_error_then_ok_once_set_right(harness, 
     for i, down in enumerate(steps):
         roll = down / 30
         applied.append(down + half * np.sin(np.radians(roll)))
-        lv, rv = (np.roll(im, i, axis=1) for im in (left, drifted(right, down, roll)))
+        lv, rv = (np.roll(im, i, axis=1) for im in (left, warp(right, down, roll)))
         n = harness.node.stats.totals().processed
         harness.send_pair(lv, rv, 'rgb8', next(stamp))
         wait_for(lambda: harness.node.stats.totals().processed > n, 'the pair processed')
@@ -75,7 +66,7 @@ def test_bag_run_folds_the_correction_into_the_rectification(tmp_path, distorted
     from gcp_stereo_ros.tools import bag
     from test_bag_raw import raw_recording
     import yaml
-    moved = drifted(distorted_pair.raw['right'], 2.0, 0.0)
+    moved = warp(distorted_pair.raw['right'], 2.0, 0.0)
     recording = raw_recording(tmp_path / 'raw', type(distorted_pair)(
         **{**vars(distorted_pair), 'raw': {**distorted_pair.raw, 'right': moved}}))
     values = {'max_disparity': 32, 'use_gcp': False}
