@@ -122,10 +122,9 @@ def test_the_monitor_estimates_in_the_background_and_corrects(cones):
     try:
         first = m.before(cones.left, moved, config, {})
         assert not first.known and m.status().message == 'no estimate yet'
-        assert not m.background.busy  # the pipeline has not taken the pair yet
         deadline = time.monotonic() + 30
         while not m.tracker.estimates and time.monotonic() < deadline:
-            m.after(cones.left, moved, cones.max_disp, 0.0)
+            m.after(0.0)
             time.sleep(0.05)
             given = m.before(cones.left, moved, config, {'align_warn_px': 1.5})
         assert given.known and abs(given.term('offset') - 1.92) < 0.05
@@ -134,6 +133,13 @@ def test_the_monitor_estimates_in_the_background_and_corrects(cones):
         assert m.status().message == 'align is off'
     finally:
         m.close()
+    refused = Monitor()
+    try:
+        with pytest.raises(ValueError, match='one size'):
+            refused.before(cones.left, moved[:50], config, {})
+        assert not refused.background.busy
+    finally:
+        refused.close()
     inline = Monitor(every=True)
     assert inline.before(cones.left, moved, config, {}).known and inline.tracker.estimates == 1
 

@@ -219,8 +219,7 @@ class GcpStereoNode(Node):
             align = self.drift.before(left, right, pipeline.config, values)
             result = pipeline(left, right, cancel=self._cancel, camera=depth_scale(model),
                               misalignment=align)
-            self.drift.after(left, right, pipeline.config.max_disp,
-                             result.seconds.get('align', 0.0))
+            self.drift.after(result.seconds.get('align', 0.0))
         except Cancelled:
             return  # shutting down
         except Exception as err:  # bad input or a pair over memory_limit_mb: say why

@@ -21,6 +21,7 @@ import numpy.typing as npt
 
 from .alignment import basis, estimate, grid, MAX_CORRECTION, MIN_CORRECTION, Misalignment, TERMS
 from .config import StereoConfig
+from .images import gray_pair
 
 MEMORY = 5.0  # estimates: an estimate's weight falls by 1 / MEMORY at each newer one
 FLOOR = 0.02  # px, added in quadrature to each term's standard error (scene-to-scene spread)
@@ -213,11 +214,18 @@ class Background:
         return True
 
     def collect(self) -> tuple[Misalignment, float] | None:
-        """Return (the estimate, its seconds) once done, then forget it; None before."""
+        """
+        Return (the estimate, its seconds) once done, then forget it; None before.
+
+        An estimate that failed is unknown, its error the reason (the frames go on).
+        """
         if self._job is None or not self._job.done():
             return None
         job, self._job = self._job, None
-        return job.result()
+        try:
+            return job.result()
+        except Exception as err:  # any failure of the thread's estimate
+            return Misalignment(False, reason=f'the estimate failed: {err}', cause='none'), 0.0
 
     def close(self) -> None:
         """Stop the thread (after the running estimate, which is dropped)."""
@@ -237,11 +245,12 @@ class Monitor:
     """
     The alignment of a stream of pairs, as the node runs it: estimated, smoothed, applied.
 
-    `before` each pair collects a finished estimate (inline with `every`: each pair, as the
-    bag tool does) and returns the correction for the pipeline; `after` a pair the
-    pipeline took counts its time and, when the `Cadence` lets it or a jump waits to be
-    confirmed, starts the next estimate on it (on the `Background` thread), so that a pair
-    the pipeline refused is never estimated. `status` may be read from another thread.
+    `before` each pair collects a finished estimate, starts the next when the `Cadence`
+    lets it or a jump waits to be confirmed (on the `Background` thread, or inline with
+    `every`: each pair, as the bag tool does) and returns the correction for the pipeline;
+    `after` counts the pair's time. A pair is estimated only once it is found to be one
+    the pipeline takes (`images.gray_pair`: one size, finite): else `before` raises its
+    ValueError, as the pipeline would. `status` may be read from another thread.
     """
 
     def __init__(self, every: bool = False) -> None:
@@ -276,20 +285,14 @@ class Monitor:
                 self.last = done[0]
                 t.update(done[0])
                 self.cadence.spent(done[1])
-            return t.correction()
+            correction = t.correction()
+        if self.background is not None and (self.cadence.due() or t.held):
+            self.background.submit(*gray_pair(left, right), config.max_disp)
+        return correction
 
-    def after(self, left: npt.ArrayLike, right: npt.ArrayLike, max_disp: int,
-              align_seconds: float) -> None:
-        """
-        Count the pair since `before`, of which the correction took `align_seconds`.
-
-        The pipeline took the pair (`left`, `right` as `before` had them): start the next
-        estimate on it if one is due.
-        """
+    def after(self, align_seconds: float) -> None:
+        """Count the pair since `before`, of which the correction took `align_seconds`."""
         self.cadence.frame(time.perf_counter() - self._start, align_seconds)
-        due = self.cadence.due() or self.tracker.held
-        if self.on and self.background is not None and due:
-            self.background.submit(left, right, max_disp)
 
     def status(self) -> DriftStatus:
         """Return the smoothed misalignment's level ('OK', None px without align)."""
