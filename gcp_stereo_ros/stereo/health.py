@@ -24,6 +24,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .images import to_gray
+
 STEP = 4  # px between two samples of a thumbnail, in rows and columns
 BLACK = 0.05  # a view's mean below this fraction of the full scale: black
 SATURATED = 0.98  # a sample at or above this fraction of the full scale is saturated
@@ -31,7 +33,6 @@ SATURATED_SHARE = 0.5  # more samples saturated than this share: the view is sat
 EXPOSURE_RATIO = 2.0  # one view's mean more than this many times the other's: far apart
 TEXTURE = 0.004  # mean |horizontal difference| below this fraction of the scale: no texture
 FAULTS = ('black', 'saturated', 'frozen')  # the kinds of finding that are faults
-_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as images.to_gray
 _SCALES = (255, 1023, 4095, 16383, 65535)  # full scales of 8 to 16 bits a sample
 
 
@@ -56,12 +57,9 @@ def thumbnail(image: np.ndarray) -> np.ndarray:
     """
     Return every STEP-th pixel of `image` as float32 gray (H / STEP, W / STEP), unscaled.
 
-    `image`: (H, W) gray, (H, W, 1), or (H, W, 3 or 4) colour (RGB or BGR; alpha ignored).
+    `image`: what `images.to_gray` takes (colour as RGB: BGR gives other weights, alike).
     """
-    a = np.asarray(image)[::STEP, ::STEP]
-    if a.ndim == 3:
-        return a[:, :, 0].astype(np.float32) if a.shape[2] == 1 else a[:, :, :3] @ _LUMA
-    return a.astype(np.float32)
+    return to_gray(np.asarray(image)[::STEP, ::STEP])
 
 
 class ViewCheck:

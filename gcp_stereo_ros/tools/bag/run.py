@@ -107,10 +107,10 @@ class Runner:
             self.waiting.pop(0)
             self.process(stamps['left'], left, right, timestamp, info)
 
-    def image(self, side, msg, info):
-        image = message_to_array(msg, self.topics[side])
+    def rectified(self, side, image, info, misalignment=None):
+        """Return the decoded `image` of `side`, rectified with `rectify` (and `misalignment`)."""
         if self.rectify:
-            return self.rectifier(side, info[side], image, self.topics[side])
+            return self.rectifier(side, info[side], image, self.topics[side], misalignment)
         return image
 
     def warn_once(self, text):
@@ -121,13 +121,14 @@ class Runner:
     def process(self, stamp, left_msg, right_msg, timestamp, info):
         config = self.pipeline.config
         try:
-            left, right = self.image('left', left_msg, info), self.image('right', right_msg, info)
+            raw = {side: message_to_array(msg, self.topics[side])
+                   for side, msg in (('left', left_msg), ('right', right_msg))}
+            left, right = (self.rectified(side, raw[side], info) for side in ('left', 'right'))
             model, why = camera_model(info, left.shape, config)
             align = self.drift.before(left, right, config, self.values)
             applied = align
             if self.rectify and align is not None and align.known:  # one resampling
-                raw = message_to_array(right_msg, self.topics['right'])
-                right = self.rectifier('right', info['right'], raw, self.topics['right'], align)
+                right = self.rectified('right', raw['right'], info, align)
                 align = Misalignment(False, reason='undone in the rectification', cause='none')
             result = self.pipeline(left, right, camera=depth_scale(model), misalignment=align)
         except ValueError as err:  # as the node: say why, go on with the next pair
